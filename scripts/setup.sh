@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Idempotent environment setup: creates .venv (Python 3.11 or 3.12), installs the pinned
+# dependencies and the five peel packages in editable mode. Re-running is a no-op when nothing
+# changed (a stamp file holds the hash of every file that affects the install).
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+PY="${PEEL_PYTHON:-}"
+if [ -z "$PY" ]; then
+  for cand in python3.12 python3.11 python3; do
+    if command -v "$cand" >/dev/null 2>&1; then
+      ver="$("$cand" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)" || continue
+      case "$ver" in 3.11|3.12) PY="$cand"; break ;; esac
+    fi
+  done
+fi
+if [ -z "$PY" ]; then
+  echo "setup: error: need Python 3.11 or 3.12 (set PEEL_PYTHON to its path)" >&2
+  exit 2
+fi
+stamp=".venv/.peel-setup-stamp"
+hash="$(cat requirements.txt requirements-dev.txt src/*/setup.py src/*/package.xml | sha256sum | cut -c1-16)"
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel ]; then
+  exit 0
+fi
+echo "setup: creating .venv with $PY and installing pinned dependencies (first run takes a minute)" >&2
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip setuptools wheel
+.venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-dev.txt
+for pkg in peel_msgs_py peel_sim_node model_learner_node peel_planner_node peel_bringup; do
+  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
+done
+echo "$hash" > "$stamp"
+echo "setup: done" >&2

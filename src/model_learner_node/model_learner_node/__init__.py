@@ -1,0 +1,1 @@
+"""Forward model (multi-scale CNN + attention + LSTM), offline training, MAML online learning, and the learner node."""

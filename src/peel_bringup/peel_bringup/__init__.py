@@ -1,0 +1,1 @@
+"""The peel command, the graph launcher, the experiments and the launch file."""

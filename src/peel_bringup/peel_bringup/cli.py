@@ -1,0 +1,62 @@
+"""``peel``: the one command-line tool, with subcommands.
+
+Each subcommand lives in the package that owns the capability and is imported lazily, so
+``peel --help`` is fast and a missing optional dependency only affects its own subcommand. Every
+subcommand is a ``main(argv: list[str]) -> int`` function. Bad input raises
+:class:`~peel_msgs_py.errors.PeelError`; this wrapper prints it as one line and exits 2.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from peel_msgs_py.errors import PeelError
+
+#: name -> ("module:function", one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("peel_bringup.demo:main", "the main job: a few tasks through the node graph on the plant"),
+    "dataset": ("peel_sim_node.dataset_cli:main", "generate a simulator or plant dataset (3.2)"),
+    "train": ("model_learner_node.train_cli:main", "train the forward model offline (3.3)"),
+    "figures": ("model_learner_node.figures_cli:main", "Fig. 9 and Fig. 10: loss ablation and model comparison"),
+    "bench": ("peel_bringup.bench:main", "benchmarks printing JSON: sim, model, planner"),
+    "experiment": ("peel_bringup.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
+    "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
+    "record": ("peel_msgs_py.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
+}
+
+
+def _usage() -> str:
+    width = max(len(n) for n in SUBCOMMANDS)
+    lines = ["usage: peel <command> [options]", "", "commands:"]
+    for name, (_, text) in SUBCOMMANDS.items():
+        lines.append(f"  {name:<{width}}  {text}")
+    lines += ["", "Run 'peel <command> --help' for the options of one command."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Dispatch ``peel <command> ...``; returns the process exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        print(f"peel: error: unknown command '{name}'\n\n{_usage()}", file=sys.stderr)
+        return 2
+    target, _ = SUBCOMMANDS[name]
+    module_name, func_name = target.split(":")
+    try:
+        func = getattr(importlib.import_module(module_name), func_name)
+        return int(func(rest) or 0)
+    except PeelError as exc:
+        print(f"peel {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"peel {name}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""OL-MPPI planner library and the planner node."""
