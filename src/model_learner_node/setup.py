@@ -1,7 +1,5 @@
 """ament_python / pip build script for model_learner_node."""
 
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = "model_learner_node"
@@ -18,7 +16,7 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="Forward model (multi-scale CNN + attention + LSTM), offline training, MAML online learning, and the learner node.",
+    description="Forward model, offline training, MAML online learning, learner node.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

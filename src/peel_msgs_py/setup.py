@@ -1,6 +1,5 @@
 """ament_python / pip build script for peel_msgs_py."""
 
-from glob import glob
 
 from setuptools import find_packages, setup
 
@@ -18,11 +17,11 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="Interface contract of peel: topic names, QoS, message classes mirroring Jazzy, trajectory codec, SI/paper unit conversion, parameter loading, the embedded DDS runtime and the MCAP recorder.",
+    description="peel interfaces: topics, QoS, messages, codec, units, params, runtime, recorder.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            
+            'peel_recorder = peel_msgs_py.recorder_node:main',
         ],
     },
 )

@@ -1,7 +1,5 @@
 """ament_python / pip build script for peel_planner_node."""
 
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = "peel_planner_node"

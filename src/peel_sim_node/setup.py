@@ -1,6 +1,5 @@
 """ament_python / pip build script for peel_sim_node."""
 
-from glob import glob
 
 from setuptools import find_packages, setup
 
@@ -18,7 +17,7 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="PyBullet glass-peeling simulator, reality-gap plant, dataset generation, and the simulator bridge node.",
+    description="PyBullet peeling simulator, reality-gap plant, datasets, simulator bridge node.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

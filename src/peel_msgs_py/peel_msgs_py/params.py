@@ -131,7 +131,7 @@ def validate(
             raise ParameterError(f"unknown parameter '{unknown[0]}'")
     out: dict[str, Any] = {}
     for spec in specs:
-        out[spec.name] = spec.check(values[spec.name] if spec.name in values else spec.default)
+        out[spec.name] = spec.check(values.get(spec.name, spec.default))
     return out
 
 

@@ -1,1 +1,3 @@
-"""PyBullet glass-peeling simulator, reality-gap plant, dataset generation, and the simulator bridge node."""
+"""PyBullet glass-peeling simulator, reality-gap plant, dataset generation, and the simulator
+bridge node.
+"""

@@ -1,0 +1,128 @@
+"""``peel record``: record the /peel topics and /clock to an MCAP bag in the rosbag2 layout.
+
+    peel record --out BAG [--duration S] [--topics T ...] [--chunk-size BYTES]
+                [--flush-interval S] [--compression lz4|none]
+    peel record --repair BAG
+
+Records until ``--duration`` seconds (wall clock) have passed, or until SIGINT / SIGTERM; then
+closes the bag properly and prints a JSON summary on stdout. A recorder killed with SIGKILL (or
+a power cut) leaves a bag without its summary: ``--repair`` turns it into a complete bag holding
+every complete chunk (see :mod:`peel_msgs_py.bag` for what is lost).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+
+from . import bag as bagmod
+from .errors import PeelError
+from .topics import RECORDED_TOPICS, topic
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="peel record",
+        description="Record the /peel topics and /clock to an MCAP bag (rosbag2 layout).",
+    )
+    mode = p.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--out", metavar="BAG", help="bag directory to create (must not exist)")
+    mode.add_argument("--repair", metavar="BAG",
+                      help="make a bag cut short readable again, keeping its complete chunks")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds of wall-clock time (default: until SIGINT/SIGTERM)")
+    p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
+                   help=f"topics to record (default: all of {', '.join(RECORDED_TOPICS)})")
+    p.add_argument("--chunk-size", type=int, default=bagmod.DEFAULT_CHUNK_SIZE, metavar="BYTES",
+                   help="flush a chunk when it holds this many bytes (default %(default)s)")
+    p.add_argument("--flush-interval", type=float, default=bagmod.DEFAULT_FLUSH_INTERVAL_S,
+                   metavar="S", help="flush a chunk when it is this old (default %(default)s s)")
+    p.add_argument("--compression", choices=sorted(bagmod.COMPRESSIONS), default="lz4",
+                   help="chunk compression (default %(default)s)")
+    return p
+
+
+class _Stop:
+    """SIGINT / SIGTERM set a flag; the spin loop ends and the bag is closed properly."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: dict[int, object] = {}
+
+    def __enter__(self) -> _Stop:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: object) -> None:
+        self.requested = True
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)  # type: ignore[arg-type]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``peel record``; returns the exit status."""
+    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    if args.repair:
+        result = bagmod.repair_bag(args.repair)
+        print(json.dumps(result.as_dict(), sort_keys=True))
+        return 0
+    if args.duration is not None and not args.duration > 0:
+        raise PeelError(f"--duration must be > 0 s, got {args.duration}")
+    names = list(dict.fromkeys(args.topics or RECORDED_TOPICS))
+    for name in names:
+        topic(name)  # unknown topic -> PeelError naming it
+    writer = bagmod.BagWriter(
+        args.out, chunk_size=args.chunk_size, flush_interval_s=args.flush_interval,
+        compression=args.compression,
+    )
+    writer.open()  # a bag path that cannot be written fails here, before any ROS set-up
+
+    from .recorder_node import RecorderNode
+    from .runtime import rclpy
+
+    t0 = time.monotonic()
+    node = None
+    rclpy.init(args=None)
+    try:
+        with _Stop() as stop:
+            node = RecorderNode(writer, names)
+            print(f"peel record: recording {len(names)} topics to {args.out}", file=sys.stderr,
+                  flush=True)
+            while not stop.requested and rclpy.ok():
+                if args.duration is not None and time.monotonic() - t0 >= args.duration:
+                    break
+                rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        writer.close()
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    summary = {
+        "bag": str(args.out),
+        "messages": writer.message_count,
+        "chunks": writer.chunks_written,
+        "topics": names,
+        "duration_s": round(time.monotonic() - t0, 3),
+    }
+    print(json.dumps(summary, sort_keys=True), flush=True)
+    return 0
+
+
+def run(argv: list[str] | None = None) -> int:
+    """``main`` with bad input reported as one line and exit status 2 (``python -m`` use)."""
+    try:
+        return main(argv)
+    except PeelError as exc:
+        print(f"peel record: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(run())

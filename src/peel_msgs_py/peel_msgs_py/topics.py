@@ -1,0 +1,231 @@
+"""The topic table of peel: names, ROS types, rates, QoS profiles and contents, as plain data.
+
+Everything on the wire is SI (REP-103): positions in m, velocities in m/s, forces in N, time in s.
+The algorithms work in the paper's units (mm, mm/s); the conversion happens only in
+:mod:`peel_msgs_py.units`, called from node code, :mod:`peel_msgs_py.codec` and the bag readers.
+
+QoS profiles are plain, hashable :class:`QosSpec` values so that this module imports no ROS;
+:func:`qos_profile` turns one into the selected runtime's ``QoSProfile`` (rclpy's or the embedded
+one) and :meth:`QosSpec.to_bag` into the ``offered_qos_profiles`` entry rosbag2 writes.
+
+Choices (docs/interfaces.md gives the reasons at length):
+
+* streams (wrench, twist, pose, cmd_vel) are RELIABLE, KEEP_LAST 10, VOLATILE: on one machine
+  reliability costs nothing, the recorder and the trajectory must not lose samples, and a
+  reliable publisher still matches best-effort subscribers (``SensorDataQoS`` tools);
+* ``/peel/trajectory`` is RELIABLE, KEEP_LAST 10: one message per task, each must reach the
+  learner and the recorder;
+* latched state (``/peel/model_version``) is RELIABLE, KEEP_LAST 1, TRANSIENT_LOCAL so a late
+  joiner (and the recorder) gets the current value, as ``/tf_static`` does;
+* ``/clock`` is published RELIABLE, KEEP_LAST 1 (matches every subscriber) and subscribed
+  BEST_EFFORT, KEEP_LAST 1, as rclpy's time source does (matches every publisher).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from .errors import PeelError
+
+# ------------------------------------------------------------------------------------ QoS data
+KEEP_LAST = "keep_last"
+KEEP_ALL = "keep_all"
+RELIABLE = "reliable"
+BEST_EFFORT = "best_effort"
+VOLATILE = "volatile"
+TRANSIENT_LOCAL = "transient_local"
+
+#: rmw's "infinite" duration as rosbag2 (Jazzy) writes it in ``offered_qos_profiles``.
+_INFINITE = {"sec": 9223372036, "nsec": 854775807}
+
+
+@dataclass(frozen=True)
+class QosSpec:
+    """A QoS profile as plain data: history, depth, reliability, durability.
+
+    Deadline, lifespan and liveliness stay at the ROS defaults (infinite / automatic).
+    """
+
+    history: str = KEEP_LAST
+    depth: int = 10
+    reliability: str = RELIABLE
+    durability: str = VOLATILE
+
+    def __post_init__(self) -> None:
+        if self.history not in (KEEP_LAST, KEEP_ALL):
+            raise PeelError(f"QoS history must be keep_last or keep_all, got {self.history!r}")
+        if self.reliability not in (RELIABLE, BEST_EFFORT):
+            raise PeelError(
+                f"QoS reliability must be reliable or best_effort, got {self.reliability!r}"
+            )
+        if self.durability not in (VOLATILE, TRANSIENT_LOCAL):
+            raise PeelError(
+                f"QoS durability must be volatile or transient_local, got {self.durability!r}"
+            )
+        if not isinstance(self.depth, int) or isinstance(self.depth, bool) or self.depth < 0:
+            raise PeelError(f"QoS depth must be a non-negative int, got {self.depth!r}")
+
+    def to_bag(self) -> dict[str, Any]:
+        """The ``offered_qos_profiles`` entry as rosbag2 metadata version 9 writes it."""
+        return {
+            "history": self.history,
+            "depth": self.depth,
+            "reliability": self.reliability,
+            "durability": self.durability,
+            "deadline": dict(_INFINITE),
+            "lifespan": dict(_INFINITE),
+            "liveliness": "automatic",
+            "liveliness_lease_duration": dict(_INFINITE),
+            "avoid_ros_namespace_conventions": False,
+        }
+
+    def describe(self) -> str:
+        """Short human form for tables: ``reliable, keep_last 10, volatile``."""
+        hist = f"keep_last {self.depth}" if self.history == KEEP_LAST else "keep_all"
+        return f"{self.reliability}, {hist}, {self.durability}"
+
+
+#: Streams sampled by the simulator / plant and the planner's command.
+STREAM_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
+#: One finished trajectory per task.
+TRAJECTORY_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
+#: Latched state: the current value reaches subscribers that join later.
+LATCHED_QOS = QosSpec(KEEP_LAST, 1, RELIABLE, TRANSIENT_LOCAL)
+#: ``/clock`` as published (reliable: matches reliable and best-effort subscribers).
+CLOCK_QOS = QosSpec(KEEP_LAST, 1, RELIABLE, VOLATILE)
+#: ``/clock`` as subscribed (best effort: matches any publisher, as rclpy's time source).
+CLOCK_SUB_QOS = QosSpec(KEEP_LAST, 1, BEST_EFFORT, VOLATILE)
+
+
+# ---------------------------------------------------------------------------------- topic table
+@dataclass(frozen=True)
+class TopicSpec:
+    """One row of the topic table."""
+
+    name: str
+    type: str  # ROS type name, pkg/msg/Type
+    rate_hz: float | None  # nominal rate; None = event driven
+    qos: QosSpec  # profile publishers offer
+    publisher: str  # node that publishes it
+    content: str  # fields used and their meaning
+    units: str
+
+    @property
+    def sub_qos(self) -> QosSpec:
+        """Profile a subscriber (the recorder) uses: the offered one, best effort for /clock."""
+        return CLOCK_SUB_QOS if self.name == CLOCK else self.qos
+
+    @property
+    def rate_text(self) -> str:
+        return f"{self.rate_hz:g} Hz" if self.rate_hz else "event"
+
+
+WRENCH = "/peel/wrench"
+TWIST = "/peel/twist"
+POSE = "/peel/pose"
+CMD_VEL = "/peel/cmd_vel"
+TRAJECTORY = "/peel/trajectory"
+MODEL_VERSION = "/peel/model_version"
+CLOCK = "/clock"
+
+#: Prefix of ``header.frame_id`` of every stamped message: the frame of task k is
+#: ``peel_task_<k>`` (see :func:`peel_msgs_py.codec.task_frame_id`): origin at that task's point C,
+#: x along the peel direction, z up (REP-103, right-handed). Each task peels a new panel, so each
+#: has its own origin C, and the frame id tells subscribers which task a sample belongs to.
+FRAME_PREFIX = "peel_task_"
+
+#: Sample rate of the state streams (dt = 0.1 s) and of the planner (control period 0.5 s).
+STATE_RATE_HZ = 10.0
+CONTROL_RATE_HZ = 2.0
+
+_TABLE: tuple[TopicSpec, ...] = (
+    TopicSpec(
+        WRENCH, "geometry_msgs/msg/WrenchStamped", STATE_RATE_HZ, STREAM_QOS, "peel_sim_node",
+        "contact force on the blade: wrench.force.x = F_RX (horizontal, peel direction), "
+        "wrench.force.z = F_RZ (vertical); torque unused (0)", "N",
+    ),
+    TopicSpec(
+        TWIST, "geometry_msgs/msg/TwistStamped", STATE_RATE_HZ, STREAM_QOS, "peel_sim_node",
+        "measured blade velocity along the peel axis, twist.linear.x = v_k "
+        "(= (q_k - q_{k-1}) / dt); other components 0", "m/s",
+    ),
+    TopicSpec(
+        POSE, "geometry_msgs/msg/PoseStamped", STATE_RATE_HZ, STREAM_QOS, "peel_sim_node",
+        "blade position along the peel axis from point C, pose.position.x = q_k; "
+        "orientation identity; header.frame_id = peel_task_<k> marks the task", "m",
+    ),
+    TopicSpec(
+        CMD_VEL, "geometry_msgs/msg/TwistStamped", CONTROL_RATE_HZ, STREAM_QOS,
+        "peel_planner_node",
+        "planner command u*, twist.linear.x, held over the next control period (0.5 s)",
+        "m/s",
+    ),
+    TopicSpec(
+        TRAJECTORY, "std_msgs/msg/Float64MultiArray", None, TRAJECTORY_QOS, "peel_sim_node",
+        "the finished task: t, q, v, u, F_RX, F_RZ, psi per sample, outcome, parameters and "
+        "provenance (layout in peel_msgs_py.codec)", "s, m, m/s, N",
+    ),
+    TopicSpec(
+        MODEL_VERSION, "std_msgs/msg/Int64", None, LATCHED_QOS, "peel_planner_node",
+        "version of the forward model the planner uses (0 = shipped checkpoint); "
+        "bumped on every accepted model swap", "-",
+    ),
+    TopicSpec(
+        CLOCK, "rosgraph_msgs/msg/Clock", STATE_RATE_HZ, CLOCK_QOS, "peel_sim_node",
+        "simulated time, when use_sim_time is set (one tick per sample)", "s",
+    ),
+)
+
+#: name -> spec, in table order.
+TOPICS: dict[str, TopicSpec] = {spec.name: spec for spec in _TABLE}
+
+#: What ``peel record`` records by default: every /peel topic and /clock.
+RECORDED_TOPICS: tuple[str, ...] = tuple(TOPICS)
+
+
+def topic(name: str) -> TopicSpec:
+    """The spec of a topic of the table; :class:`PeelError` naming it when unknown."""
+    try:
+        return TOPICS[name]
+    except KeyError:
+        raise PeelError(
+            f"unknown topic {name!r} (known: {', '.join(TOPICS)})"
+        ) from None
+
+
+def qos_profile(spec: QosSpec | TopicSpec | str, *, subscriber: bool = False) -> Any:
+    """The runtime ``QoSProfile`` for a spec, a topic spec or a topic name.
+
+    ``subscriber=True`` gives the profile a subscriber should use (:attr:`TopicSpec.sub_qos`).
+    Imports ``peel_msgs_py.runtime.qos`` (rclpy's ``rclpy.qos`` or the embedded one) on call.
+    """
+    if isinstance(spec, str):
+        spec = topic(spec)
+    if isinstance(spec, TopicSpec):
+        spec = spec.sub_qos if subscriber else spec.qos
+    from .runtime.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=(HistoryPolicy.KEEP_LAST if spec.history == KEEP_LAST
+                 else HistoryPolicy.KEEP_ALL),
+        depth=spec.depth,
+        reliability=(ReliabilityPolicy.RELIABLE if spec.reliability == RELIABLE
+                     else ReliabilityPolicy.BEST_EFFORT),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if spec.durability == TRANSIENT_LOCAL
+                    else DurabilityPolicy.VOLATILE),
+    )
+
+
+def markdown_table() -> str:
+    """The topic table as Markdown (docs/interfaces.md and the README embed it)."""
+    rows = [
+        "| topic | type | rate | QoS | publisher | content | units |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in _TABLE:
+        rows.append(
+            f"| `{s.name}` | {s.type} | {s.rate_text} | {s.qos.describe()} | {s.publisher} "
+            f"| {s.content} | {s.units} |"
+        )
+    return "\n".join(rows)
