@@ -99,3 +99,15 @@ def test_plant_source_dataset(tmp_path):
     tr = load_split(d, split_of_sets(1, 0)[0])
     assert tr[0].meta["source"] == "plant"
     assert np.isfinite(tr[0].fx).all()
+
+
+def test_plant_settings_do_not_invalidate_a_sim_dataset(tmp_path):
+    d = tmp_path / "s"
+    generate_dataset(CFG, d, param_sets=1, per_set=1, seed=4, progress=False)
+    ref = {f: (d / f).read_bytes() for f in shard_files(d)}
+    plant_tuned = load_sim_config({"plant.residual_vacuum_n": 1.0})
+    generate_dataset(plant_tuned, d, param_sets=1, per_set=1, seed=4, progress=False)
+    assert {f: (d / f).read_bytes() for f in shard_files(d)} == ref
+    sim_changed = load_sim_config({"load.base_n": 1.4})
+    with pytest.raises(PeelError, match="config_hash"):
+        generate_dataset(sim_changed, d, param_sets=1, per_set=1, seed=4, progress=False)

@@ -135,9 +135,16 @@ def test_rollout_is_noise_free_truth_and_leaves_env_unchanged():
 
 def test_plant_differs_from_sim():
     rng = np.random.default_rng(0)
-    sim = [sample_params(CFG, rng, "sim")["friction"] for _ in range(200)]
-    plant = [sample_params(CFG, rng, "plant")["friction"] for _ in range(200)]
-    assert np.mean(plant) > np.mean(sim) + 0.1
+    sim = [sample_params(CFG, rng, "sim") for _ in range(200)]
+    plant = [sample_params(CFG, rng, "plant") for _ in range(200)]
+
+    def mean(sets, name):
+        return np.mean([p[name] for p in sets])
+
+    # a stickier, softer, more viscous pad
+    assert mean(plant, "friction") > mean(sim, "friction") + 0.05
+    assert mean(plant, "stiffness") < mean(sim, "stiffness") - 1000.0
+    assert mean(plant, "damping") > mean(sim, "damping") + 250.0
     # same physical parameters: declared effects (residual vacuum, lag, drift) still differ
     p = flat_params()
     hs = const_run(p, u=2.0, n=30, source="sim", seed=1)

@@ -8,6 +8,8 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={package_name: ["checkpoints/*.safetensors", "checkpoints/*.json", "checkpoints/*.md"]},
+    include_package_data=True,
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/model_learner_node']),
         ('share/model_learner_node', ['package.xml']),

@@ -1,1 +1,3 @@
-"""Forward model (multi-scale CNN + attention + LSTM), offline training, MAML online learning, and the learner node."""
+"""Forward model (multi-scale CNN + attention + LSTM), offline training, MAML online learning, and
+the learner node.
+"""

@@ -23,7 +23,7 @@ Choices (docs/interfaces.md gives the reasons at length):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from .errors import PeelError
@@ -113,8 +113,17 @@ class TopicSpec:
 
     @property
     def sub_qos(self) -> QosSpec:
-        """Profile a subscriber (the recorder) uses: the offered one, best effort for /clock."""
-        return CLOCK_SUB_QOS if self.name == CLOCK else self.qos
+        """Profile a subscriber (the recorder) uses: the offered one, best effort for /clock.
+
+        ``/peel/model_version`` is read with a deeper history (transient local, depth 16) so that
+        two swaps in quick succession both reach the subscriber (and the bag), while a late
+        joiner still receives only the current version that the publisher keeps.
+        """
+        if self.name == CLOCK:
+            return CLOCK_SUB_QOS
+        if self.name == MODEL_VERSION:
+            return replace(self.qos, depth=16)
+        return self.qos
 
     @property
     def rate_text(self) -> str:

@@ -59,9 +59,12 @@ def code_version() -> str:
     return f"peel_sim_node-0.1.0+src.{h.hexdigest()[:12]}"
 
 
-def config_hash(cfg: SimConfig) -> str:
-    """Hash of the simulator parameters that shape the data."""
-    flat = {k: v for k, v in cfg.flat.items() if not k.startswith("dataset.")}
+def config_hash(cfg: SimConfig, source: str | None = None) -> str:
+    """Hash of the simulator parameters that shape the data of ``source``: every group but
+    ``dataset.*``; for ``source="sim"`` also not ``plant.*``, which cannot change simulator
+    data (so tuning the plant does not invalidate simulator datasets)."""
+    skip = ("dataset.", "plant.") if source == "sim" else ("dataset.",)
+    flat = {k: v for k, v in cfg.flat.items() if not k.startswith(skip)}
     return hashlib.sha256(json.dumps(flat, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -223,7 +226,7 @@ def generate_dataset(cfg: SimConfig, out: str | os.PathLike[str], *, param_sets:
     if source not in ("sim", "plant"):
         raise PeelError(f"--source must be sim or plant, got {source!r}")
     out = Path(out)
-    req = Request(param_sets, per_set, seed, source, config_hash(cfg))
+    req = Request(param_sets, per_set, seed, source, config_hash(cfg, source))
     prepare_dir(out, req)
     (out / MANIFEST).unlink(missing_ok=True)
     splits = split_of_sets(param_sets, seed)

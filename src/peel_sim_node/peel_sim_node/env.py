@@ -29,6 +29,7 @@ from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
 from . import compensation as comp
+from ._pybullet import pb
 from .config import SimConfig
 from .effects import Effect, EffectAction, EffectState, combine
 from .noise import ForceSensor
@@ -146,14 +147,14 @@ class PeelEnv:
         else:
             p = sample_params(self.cfg, self.rng, self.source)
         self.params: dict[str, float] = p
-        self._tiles = np.array([p[f"tile_{i}"] for i in range(self.cfg.scene.n_tiles)])
+        self._tile_list = [float(p[f"tile_{i}"]) for i in range(self._n_tiles)]
         self._damping = p["damping"]
         self.scene.apply_params(p["friction"], p["stiffness"], p["damping"])
         self.scene.reset_bodies()
-        self.scene.set_blade_friction(self.cfg.scene.static_friction_ratio)
+        self.scene.set_blade_friction(self._mu_static)
         self.sensor.reset(self.rng)
         self.d = _Dyn()
-        self.d.blade_mu = self.cfg.scene.static_friction_ratio
+        self.d.blade_mu = self._mu_static
         # settle the contacts at rest (no motion): one sample of engine steps
         for _ in range(self._nsub):
             self._engine_step(EffectAction(), 0.0)
@@ -195,20 +196,19 @@ class PeelEnv:
         u = float(u_mmps)
         if not math.isfinite(u):
             raise PeelError(f"command u_mmps must be finite, got {u_mmps!r}")
-        scatter = self.rng.normal(0.0, self.cfg.noise.velocity_sigma_mmps)
+        scatter = self.rng.normal(0.0, self._v_sigma)
         q_prev = self._buf[self._n - 1, 1]
         self._buf[self._n - 1, 3] = u
         fx, fz, psi = self._advance(u, scatter)
         t = self._n * self._dt
         mfx, mfz = self.sensor.read(fx, fz, self._dt, self.rng)
-        q = self.scene.blade_state()[0] / MM
+        q = self._x_blade / MM
         self._append(t, q, (q - q_prev) / self._dt, mfx, mfz, psi)
-        tk = self.cfg.task
-        if abs(mfx) >= tk.f_prewarn_n or abs(mfz) >= tk.f_prewarn_n:
+        if abs(mfx) >= self._f_prewarn or abs(mfz) >= self._f_prewarn:
             self.outcome = "safety_stop"
-        elif q >= tk.q_ter_mm:
+        elif q >= self._q_ter:
             self.outcome = "done"
-        elif t >= tk.t_max_s - 1e-9:
+        elif t >= self._t_end:
             self.outcome = "timeout"
         self._hist = None
 
@@ -233,27 +233,25 @@ class PeelEnv:
             raise PeelError(f"rollout v must have shape [N, S], got {v.shape}")
         if not np.all(np.isfinite(v)):
             raise PeelError("rollout v must be finite")
-        out = np.empty((v.shape[0], v.shape[1], 3))
+        out: list[tuple[float, float, float]] = []
         sid = self.scene.save()
         saved = self.d.copy()
         try:
-            for i in range(v.shape[0]):
+            for row in v.tolist():
                 self.scene.restore(sid)
                 self.d = saved.copy()
                 self.scene.set_blade_friction(self.d.blade_mu)
                 self.scene.set_local(self._tile_factor(self.scene.blade_state()[0]))
-                for j in range(v.shape[1]):
-                    fx, fz, _ = self._advance(float(v[i, j]), 0.0)
-                    out[i, j, 0] = self.scene.blade_state()[0] / MM
-                    out[i, j, 1] = fx
-                    out[i, j, 2] = fz
+                for u in row:
+                    fx, fz, _ = self._advance(u, 0.0)
+                    out.append((self._x_blade / MM, fx, fz))
         finally:
             self.scene.restore(sid)
             self.scene.remove_state(sid)
             self.d = saved
             self.scene.set_blade_friction(self.d.blade_mu)
             self.scene.set_local(self._tile_factor(self.scene.blade_state()[0]))
-        return out
+        return np.array(out, dtype=np.float64).reshape(v.shape[0], v.shape[1], 3)
 
     # ------------------------------------------------------------------ internals
     def _append(self, t: float, q: float, v: float, fx: float, fz: float, psi: float) -> None:
@@ -262,11 +260,14 @@ class PeelEnv:
 
     def _tile_factor(self, x_m: float) -> float:
         i = int((x_m - self._tile_x0) / self._tile_len)
-        return float(self._tiles[min(max(i, 0), self._n_tiles - 1)])
+        return self._tile_list[min(max(i, 0), self._n_tiles - 1)]
 
     def _cache_constants(self) -> None:
-        """Plain-float copies of the per-step constants (config lookups are slow)."""
-        sc, ld = self.cfg.scene, self.cfg.load
+        """Plain-float copies of the per-step constants. ``SimConfig`` group lookups build a
+        dict per access (tens of microseconds, more than a physics step's Python), so nothing
+        on the per-sample or per-step path reads ``self.cfg``."""
+        cfg = self.cfg
+        sc, ld, tk, cc = cfg.scene, cfg.load, cfg.task, cfg.compensation
         self._tile_x0 = self.scene.tile_x0
         self._tile_len = sc.tile_length_mm * MM
         self._n_tiles = sc.n_tiles
@@ -281,6 +282,16 @@ class PeelEnv:
         self._v_ref = ld.rate_ref_mmps * MM
         self._rate_n = ld.rate_exponent
         self._rate_gain = ld.rate_gain
+        self._v_sigma = cfg.noise.velocity_sigma_mmps
+        self._f_prewarn = tk.f_prewarn_n
+        self._q_ter = tk.q_ter_mm
+        self._t_end = tk.t_max_s - 1e-9
+        self._comp_on = bool(cc.enabled)
+        self._e, self._b, self._h = cc.youngs_modulus_n_per_mm2, cc.width_mm, cc.thickness_mm
+        alpha = math.radians(cc.alpha_deg)
+        self._sin_a, self._cos_a = math.sin(alpha), math.cos(alpha)
+        self._phi_deg = bool(cc.phi_unit_deg)
+        self._lp0 = cc.peeled_length_0_mm
 
     def _advance(self, u: float, scatter: float) -> tuple[float, float, float]:
         """One sample of dynamics under command u (mm/s); returns true (fx, fz, psi)."""
@@ -294,16 +305,65 @@ class PeelEnv:
             act = _NO_ACTION
         d.u = u
         target = ((u * act.v_scale + act.v_offset_mmps) + scatter) * MM
-        a_lag = self._a_lag
-        for _ in range(self._nsub):
-            d.v_robot += (target - d.v_robot) * a_lag
-            self._engine_step(act, d.v_robot)
+        self._substeps(target, act.resist_n, act.load_n)
         d.t += self._dt
         fx, fz, psi = self._measure_true(act.resist_n)
         d.fx_true, d.fz_true = fx, fz
         return fx, fz, psi
 
+    def _substeps(self, target: float, resist_n: float, load_n: float) -> None:
+        """The engine steps of one sample, the robot speed following ``target`` (m/s).
+
+        This is the simulator's hot loop. Per engine step: the robot carriage moves (through the
+        plant's lag), the pad takes the local adhesion of the tile under the blade, the blade's
+        pad friction is static while it sticks and kinetic while it slides (stick-slip), the
+        compliance pulls the blade towards the carriage and the substrate is pulled onto the
+        blade by ``a(q) * (base + rate_gain * damping * v_ref * (v_peel / v_ref)^n) + load``.
+        :meth:`_engine_step` is the same step written out plainly (``reset`` settles with it);
+        this loop does the same arithmetic in the same order with the state in locals and the
+        PyBullet functions bound once, so a step costs three PyBullet calls (joint state, two
+        joint forces) besides ``stepSimulation``; ``changeDynamics`` is called only when the
+        tile or the stick/slip state changes."""
+        d = self.d
+        scene = self.scene
+        cid, blade, sub = scene.client, scene.blade, scene.substrate
+        # positional arguments: getJointState(body, joint, client) and
+        # setJointMotorControl2(body, joint, mode, targetPosition, targetVelocity, force)
+        get_state, motor, step_sim = pb.getJointState, pb.setJointMotorControl2, pb.stepSimulation
+        torque = pb.TORQUE_CONTROL
+        tiles, x0, tile_len, last = self._tile_list, self._tile_x0, self._tile_len, self._n_tiles - 1
+        a_lag, dtp, a_peel = self._a_lag, self._dtp, self._a_peel
+        mu_static, v_stick, k_c, c_c = self._mu_static, self._v_stick, self._k_c, self._c_c
+        v_ref, rate_n, base_n = self._v_ref, self._rate_n, self._base_n
+        gain = self._rate_gain * self._damping * v_ref  # the left part of _engine_step's product
+        v_robot, x_robot, v_peel, mu = d.v_robot, d.x_robot, d.v_peel, d.blade_mu
+        cur_a, cur_mu = scene._local, scene._blade_mu
+        f_c = xd_b = 0.0
+        for _ in range(self._nsub):
+            v_robot += (target - v_robot) * a_lag
+            x_b, xd_b = get_state(blade, 0, cid)[:2]
+            i = int((x_b - x0) / tile_len)
+            a_loc = tiles[0 if i < 0 else (last if i > last else i)]
+            if a_loc != cur_a:
+                scene.set_local(a_loc)
+                cur_a = a_loc
+            x_robot += v_robot * dtp
+            mu = mu_static if -v_stick < xd_b < v_stick else 1.0  # abs(xd_b) < v_stick
+            if mu != cur_mu:
+                scene.set_blade_friction(mu)
+                cur_mu = mu
+            f_c = k_c * (x_robot - x_b) + c_c * (v_robot - xd_b) - resist_n
+            v_peel += ((0.0 if xd_b < 0.0 else xd_b) - v_peel) * a_peel  # max(xd_b, 0.0)
+            load = a_loc * (base_n + gain * (v_peel / v_ref) ** rate_n) + load_n
+            motor(blade, 0, torque, 0.0, 0.0, f_c, physicsClientId=cid)
+            motor(sub, 0, torque, 0.0, 0.0, -load, physicsClientId=cid)
+            step_sim(cid)
+        d.v_robot, d.x_robot, d.v_peel, d.blade_mu = v_robot, x_robot, v_peel, mu
+        d.v_blade = xd_b
+        d.f_coupling = f_c + resist_n
+
     def _engine_step(self, act: EffectAction, v_robot: float) -> None:
+        """One engine step, written plainly (see :meth:`_substeps`, which must match it)."""
         d = self.d
         scene = self.scene
         x_b, xd_b = scene.blade_state()
@@ -325,21 +385,20 @@ class PeelEnv:
 
     def _measure_true(self, resist_n: float) -> tuple[float, float, float]:
         """True (F_RX, F_RZ) in N: engine contact forces + Eq. 21-22 (+ effect resistance),
-        and the blade's indentation psi (mm)."""
-        _fx_c, fz_load, _fz_pad, pen = self.scene.contact_forces()
+        and the blade's indentation psi (mm). Leaves the blade position (m) in ``_x_blade``."""
+        scene = self.scene
+        fz_load, pen = scene.load_and_penetration()
+        x_b, xd_b = scene.blade_state()
+        self._x_blade = x_b
         # F_RX: the force the compliance (tool + wrist sensor) transmits to the blade, which
         # the engine's contacts resist; F_RZ: the engine's normal force of the glass on it.
         fx, fz = self.d.f_coupling + resist_n, fz_load
-        cc = self.cfg.compensation
-        if cc.enabled:
-            x_b, xd_b = self.scene.blade_state()
-            phi, lp = comp.desorption_geometry(self.scene.substrate_lift() / MM, x_b / MM,
-                                               cc.peeled_length_0_mm)
-            cx, cz = comp.compensate(
-                e_n_per_mm2=cc.youngs_modulus_n_per_mm2, b_mm=cc.width_mm, h_mm=cc.thickness_mm,
-                alpha_deg=cc.alpha_deg, phi_rad=phi, lp_mm=lp, v_mmps=max(xd_b / MM, 0.0),
-                phi_unit_deg=cc.phi_unit_deg,
-            )
-            fx += cx
-            fz += cz
+        if self._comp_on:
+            # Eq. 19-22 as compensation.compensate computes them, constants hoisted
+            phi, lp = comp.desorption_geometry(scene.substrate_lift() / MM, x_b / MM, self._lp0)
+            fb = comp.f_bend(self._e, self._b, self._h, phi, lp)
+            fp = float(comp.f_peel(max(xd_b / MM, 0.0),
+                                   math.degrees(phi) if self._phi_deg else phi))
+            fx += fb * self._sin_a
+            fz += fb * self._cos_a + fp
         return fx, fz, pen / MM

@@ -2,7 +2,8 @@
 
 Compared with the pretraining simulator (``source="sim"``) the plant (``source="plant"``)
 
-1. draws P_k from the shifted intervals ``plant.*_low/high`` (a stickier, stiffer pad);
+1. draws P_k from the shifted intervals ``plant.*_low/high`` (a stickier, softer, more
+   viscous pad: forces rise faster with speed; bounded so careful peeling stays below 20 N);
 2. has *residual vacuum* near C (:class:`~peel_sim_node.effects.ResidualVacuum`): an extra
    hold-down load decaying with q, so the start is harder than the simulator predicts;
 3. has *actuator lag*: the robot's speed follows the command with a first-order lag

@@ -190,6 +190,20 @@ class Scene:
                 pen = max(pen, -cp[8])
         return fx, fz_load, fz_pad, pen
 
+    def load_and_penetration(self) -> tuple[float, float]:
+        """The two contact read-outs the environment records, from one ``getContactPoints``:
+        the downward force of the substrate on the blade (N) and the largest pad penetration
+        (m). Same arithmetic and order as :meth:`contact_forces`, without the unused sums."""
+        fz_load = 0.0
+        pen = 0.0
+        sub = self.substrate
+        for cp in pb.getContactPoints(self.blade, physicsClientId=self.client):
+            if cp[2] == sub:
+                fz_load -= cp[9] * cp[7][2] + cp[10] * cp[11][2] + cp[12] * cp[13][2]
+            elif -cp[8] > pen:
+                pen = -cp[8]
+        return fz_load, pen
+
     def close(self) -> None:
         if self.client is not None and self.client >= 0:
             with contextlib.suppress(pb.error):

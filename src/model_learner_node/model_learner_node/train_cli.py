@@ -1,0 +1,130 @@
+"""``peel train``: offline training of the forward model (3.3) and fine-tuning from bags.
+
+From a dataset written by ``peel dataset`` (splits train / val / test)::
+
+    peel train --data DIR --arch {ours,mlp,cnn-lstm} [--no-pene] --out CKPT [--epochs E] [--seed S]
+
+From recorded MCAP bags (the path real-robot data takes): the ``/peel/trajectory`` messages are
+extracted with :func:`peel_msgs_py.bagread.read_trajectories`, split by trajectory into a
+training and a hold-out part (``--val-fraction``, seeded), and ``--init`` is fine-tuned; its
+normalisation is kept::
+
+    peel train --from-bags BAG [BAG ...] --init CKPT --out CKPT
+
+Writes ``CKPT.safetensors`` + ``CKPT.json`` and ``CKPT.metrics.json`` (test RMSE / Corr per force
+channel, Eq. 39-40, and the learning curve) and prints the metrics as JSON on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from peel_msgs_py.errors import PeelError
+
+from .checkpoint import jsonable, load_checkpoint
+from .config import ARCHS, load_model_config, load_train_config
+from .train import train_and_save
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="peel train", description=__doc__.split("\n\n")[0])
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="dataset directory written by 'peel dataset'")
+    src.add_argument("--from-bags", nargs="+", type=Path, metavar="BAG",
+                     help="recorded rosbag2/MCAP bags with /peel/trajectory messages")
+    p.add_argument("--out", type=Path, required=True, help="checkpoint path (name or .safetensors)")
+    p.add_argument("--arch", choices=ARCHS, default=None, help="architecture (default: config)")
+    p.add_argument("--init", type=Path, help="checkpoint to start from (required with --from-bags)")
+    p.add_argument("--no-pene", action="store_true", help="train with L_MSE only (kappa = 0)")
+    p.add_argument("--epochs", type=int, help="maximum epochs (default: config train.epochs)")
+    p.add_argument("--seed", type=int, help="seed (default: config train.seed)")
+    p.add_argument("--lr", type=float, help="Adam learning rate (default: config, paper 1e-4)")
+    p.add_argument("--batch-size", type=int, help="slices per batch (default: config)")
+    p.add_argument("--patience", type=int, help="early-stopping patience (default: config)")
+    p.add_argument("--val-fraction", type=float, default=0.2,
+                   help="--from-bags: share of trajectories held out for validation (0.2)")
+    p.add_argument("--params-file", type=str, help="ROS 2 parameter YAML overriding the config")
+    p.add_argument("--device", default="cpu", help="cpu (default), cuda, or auto")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch default)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _split_bags(trajs: list, fraction: float, seed: int) -> tuple[list, list, str]:
+    if not 0.0 < fraction < 1.0:
+        raise PeelError(f"--val-fraction must be in (0, 1), got {fraction}")
+    if len(trajs) < 2:
+        return trajs, trajs, "train (only one trajectory in the bags)"
+    order = np.random.default_rng(seed).permutation(len(trajs))
+    n_val = min(len(trajs) - 1, max(1, round(fraction * len(trajs))))
+    val = [trajs[i] for i in sorted(order[:n_val])]
+    train = [trajs[i] for i in sorted(order[n_val:])]
+    return train, val, "holdout"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    model_cfg = load_model_config(args.params_file)
+    train_cfg = load_train_config(args.params_file)
+    changes = {k: v for k, v in (("epochs", args.epochs), ("seed", args.seed), ("lr", args.lr),
+                                  ("batch_size", args.batch_size), ("patience", args.patience))
+               if v is not None}
+    for k, v in changes.items():
+        if (k == "lr" and not v > 0) or (k != "lr" and v < (0 if k == "seed" else 1)):
+            raise PeelError(f"--{k.replace('_', '-')} = {v} is out of range")
+    train_cfg = replace(train_cfg, **changes)
+    init = load_checkpoint(args.init) if args.init else None
+    if init is not None:
+        if args.arch is not None and args.arch != init.arch:
+            raise PeelError(f"--arch {args.arch} differs from the --init checkpoint's {init.arch}")
+        model_cfg = init.cfg
+    elif args.arch is not None:
+        model_cfg = model_cfg.with_arch(args.arch)
+    extra: dict = {"command": "peel train " + " ".join(argv or [])}
+    if args.from_bags:
+        if init is None:
+            raise PeelError("--from-bags needs --init CKPT (the model to fine-tune)")
+        from peel_msgs_py.bagread import read_trajectories
+
+        trajs = []
+        for bag in args.from_bags:
+            trajs += [t for t in read_trajectories(bag) if len(t) >= 2]
+        if not trajs:
+            raise PeelError("the bags hold no /peel/trajectory message with at least 2 samples")
+        train, val, label = _split_bags(trajs, args.val_fraction, train_cfg.seed)
+        test = val
+        extra["bags"] = [str(b) for b in args.from_bags]
+        extra["init"] = str(args.init)
+    else:
+        from peel_sim_node.dataset import load_split
+
+        if not args.data.is_dir():
+            raise PeelError(f"--data {args.data} is not a directory")
+        train, val, test = (load_split(args.data, s) for s in ("train", "val", "test"))
+        label = "test"
+        extra["data"] = str(args.data)
+        manifest = args.data / "dataset.json"
+        if manifest.is_file():
+            try:
+                man = json.loads(manifest.read_text())
+            except json.JSONDecodeError:
+                raise PeelError(f"dataset manifest {manifest} is not valid JSON") from None
+            extra["dataset"] = {k: man.get(k) for k in ("format", "code_version", "config_hash",
+                                                       "source", "seed", "param_sets", "per_set")}
+        if init is not None:
+            extra["init"] = str(args.init)
+    _, metrics = train_and_save(
+        args.out, train, val, test, model_cfg=model_cfg, train_cfg=train_cfg,
+        use_pene=not args.no_pene, init=init, device=args.device, progress=not args.quiet,
+        extra_meta=extra, test_label=label,
+    )
+    print(json.dumps(jsonable(metrics), indent=2))
+    return 0

@@ -1,0 +1,240 @@
+"""``peel bench planner``: plan() latency and episode cost, peel's OL-MPPI vs pytorch_mppi.
+
+For each (N, H) in (50, 5), (100, 5), (1000, 10) and each implementation:
+
+* ``median_ms`` / ``p99_ms``: wall time of one planning call (``Planner.plan`` for peel,
+  ``MPPI.command`` for pytorch_mppi) from a fixed simulator history, on CPU with the real forward
+  model (the shipped checkpoint when it exists, else a freshly initialised ``ours`` model: the
+  JSON says which);
+* ``episode_cost``: mean J (Eq. 3) over the same simulator tasks (seeds 0..tasks-1) driven by that
+  planner, with ``t_cpl_s`` and outcomes beside it.
+
+pytorch_mppi (PyPI ``pytorch-mppi``) drives the same model and the same cost: its state is the
+model's history window (h x 4) plus the time, flattened; one of its dynamics steps is one horizon
+step = ``steps_per_horizon_step`` model steps with the velocity held, and it returns that step's
+Eq. 4 + barrier cost in an extra state column that its running cost reads; its terminal cost is
+the cost-to-go + phi of :class:`peel_planner_node.cost.Cost`. Its noise covariance is sigma0
+(it has no Sigma re-estimation) and its control term is scaled by the same
+``control_cost_scale``, so both optimise the same objective.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+from peel_planner_node.config import PlannerConfig, load_planner_config
+from peel_planner_node.cost import Cost, episode_cost_terms
+from peel_planner_node.dynamics import LearnedDynamics, history_window
+from peel_planner_node.mppi import Planner
+
+CASES: tuple[tuple[int, int], ...] = ((50, 5), (100, 5), (1000, 10))
+
+
+def load_model() -> tuple[Any, dict[str, Any]]:
+    """The shipped checkpoint, else a fresh ``ours`` ForcePredictor (seed 0)."""
+    from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
+    from model_learner_node.config import ModelConfig
+    from model_learner_node.predictor import ForcePredictor
+
+    try:
+        path = shipped_checkpoint()
+        pred = load_checkpoint(path)
+        info = {"source": "shipped_checkpoint", "path": str(path)}
+    except PeelError:
+        torch.manual_seed(0)
+        pred = ForcePredictor(ModelConfig())
+        info = {"source": "fresh_untrained", "path": None}
+    pred.eval()
+    info.update({"arch": pred.arch, "h": pred.h,
+                 "parameters": int(sum(p.numel() for p in pred.parameters()))})
+    return pred, info
+
+
+class TorchMppiPolicy:
+    """pytorch_mppi.MPPI over the forward model and peel's cost (module docstring)."""
+
+    def __init__(self, predictor: Any, cost: Cost, cfg: PlannerConfig, seed: int = 0) -> None:
+        from pytorch_mppi import MPPI
+
+        self.pred, self.cost, self.cfg = predictor, cost, cfg
+        self.h = int(predictor.h)
+        m = cfg.mppi
+        self.k, self.dt = m.steps_per_horizon_step, cfg.cost.dt_s
+        nx = self.h * 4 + 2  # window, t, cost of the last step
+        self.mppi = MPPI(self._dynamics, self._running_cost, nx,
+                         torch.tensor([[m.sigma0]]), num_samples=m.n_samples, horizon=m.horizon,
+                         lambda_=m.lam, u_min=torch.tensor([m.u_min]),
+                         u_max=torch.tensor([m.u_max]), u_init=torch.tensor([m.u_init]),
+                         terminal_state_cost=self._terminal)
+        inv = 1.0 / m.sigma0
+        scale = m.control_cost_scale
+        self.mppi._compute_action_cost = lambda noise: scale * m.lam * noise * inv
+        self.seed = seed
+        self.reset()
+
+    def reset(self) -> None:
+        torch.manual_seed(self.seed)
+        self.mppi.U = torch.full_like(self.mppi.U, self.cfg.mppi.u_init)
+
+    def _dynamics(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        n = state.shape[0]
+        win = state[:, :self.h * 4].reshape(n, self.h, 4)
+        t = state[:, -2]
+        v = action[:, 0]
+        c = self.cost.cfg
+        step_cost = torch.zeros(n, dtype=state.dtype)
+        for _ in range(self.k):
+            f = self.pred.predict(win, v)
+            q_before = torch.clamp(win[:, -1, 0], max=c.q_ter_mm)
+            q = win[:, -1, 0] + self.dt * v
+            row = torch.stack([q, v, f[:, 0], f[:, 1]], dim=1)
+            win = torch.cat([win[:, 1:], row.unsqueeze(1)], dim=1)
+            active = (q_before < c.q_ter_mm).to(state.dtype)
+            dq = torch.clamp(q, max=c.q_ter_mm) - q_before
+            step_cost = step_cost + active * (self.cost.immediate(dq, f[:, 0], f[:, 1])
+                                              + self.cost.barrier(f[:, 0], f[:, 1]))
+            t = t + self.dt
+        return torch.cat([win.reshape(n, -1), t.unsqueeze(1), step_cost.unsqueeze(1)], dim=1)
+
+    @staticmethod
+    def _running_cost(state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return state[:, -1]
+
+    def _terminal(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        c = self.cost.cfg
+        last = states[..., -1, :]  # [1, K, nx]
+        q = torch.clamp(last[..., self.h * 4 - 4], max=c.q_ter_mm)
+        t_end = last[..., -2]
+        togo = c.w_togo * (c.q_ter_mm - q) / (c.q_ter_mm - c.q0_mm)
+        phi = torch.where(t_end > c.t_max_s,
+                          torch.where(q >= c.q_ter_mm, c.phi_late, c.phi_fail), 0.0)
+        return togo + phi
+
+    def state(self, history: Trajectory) -> torch.Tensor:
+        win = torch.as_tensor(history_window(history, self.h), dtype=torch.float32)
+        return torch.cat([win.reshape(-1), torch.tensor([float(history.t[-1]), 0.0])])
+
+    def __call__(self, history: Trajectory) -> float:
+        if float(history.q[-1]) >= self.cost.cfg.q_ter_mm:
+            return 0.0
+        with torch.inference_mode():
+            u = self.mppi.command(self.state(history))
+        m = self.cfg.mppi
+        return float(min(max(float(u.reshape(-1)[0]), m.u_min), m.u_max))
+
+
+def timing(fn: Any, history: Trajectory, repeats: int, warmup: int = 3) -> tuple[float, float]:
+    for _ in range(warmup):
+        fn(history)
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn(history)
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(ts)), float(np.percentile(ts, 99))
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.env import PeelEnv
+    from peel_sim_node.episode import run_episode
+
+    torch.set_num_threads(args.threads)
+    pred, model_info = load_model()
+    base = load_planner_config()
+    cases = CASES[:2] if args.quick else CASES
+    seeds = list(range(args.tasks))
+    env = PeelEnv(load_sim_config(), seed=0)
+    try:
+        env.reset(seed=1000)
+        for _ in range(20):
+            env.step(2.0)
+        hist = env.history
+        out_cases = []
+        bar = tqdm(total=len(cases) * 2, desc="bench planner", disable=not args.progress,
+                   file=sys.stderr)
+        for n, h in cases:
+            cfg = base.replace(**{"mppi.n_samples": n, "mppi.horizon": h})
+            cost = Cost(cfg.cost)
+            impls = {
+                "peel": lambda cfg=cfg, cost=cost: Planner(LearnedDynamics(pred), cost, cfg),
+                "pytorch_mppi": lambda cfg=cfg, cost=cost: TorchMppiPolicy(pred, cost, cfg),
+            }
+            for name, make in impls.items():
+                policy = make()
+                reps = max(5, args.repeats // (10 if n >= 1000 else 1))
+                med, p99 = timing(policy, hist, reps)
+                costs, tcpl, outcomes = [], [], []
+                for seed in seeds:
+                    policy.reset()
+                    traj = run_episode(env, policy, seed=seed)
+                    terms = episode_cost_terms(traj, cost)
+                    costs.append(float(terms["total"]))
+                    tcpl.append(traj.t_cpl)
+                    outcomes.append(traj.outcome)
+                out_cases.append({
+                    "impl": name, "n": n, "h": h, "median_ms": round(med, 3),
+                    "p99_ms": round(p99, 3), "timing_calls": reps,
+                    "episode_cost": round(float(np.mean(costs)), 4),
+                    "episode_costs": [round(c, 4) for c in costs],
+                    "t_cpl_s": round(float(np.mean(tcpl)), 3), "outcomes": outcomes,
+                })
+                bar.update(1)
+        bar.close()
+    finally:
+        env.close()
+    by = {(c["impl"], c["n"], c["h"]): c for c in out_cases}
+    goals = {}
+    for n, h in cases:
+        ours, theirs = by[("peel", n, h)], by[("pytorch_mppi", n, h)]
+        goals[f"{n}x{h}"] = {
+            "faster_than_pytorch_mppi": ours["median_ms"] < theirs["median_ms"],
+            "cost_not_higher": ours["episode_cost"] <= theirs["episode_cost"],
+            # J of a safety-stopped task (phi_fail = 2, short) can undercut a finished one:
+            # read cost_not_higher together with how many tasks each finished
+            "peel_done": ours["outcomes"].count("done"),
+            "pytorch_mppi_done": theirs["outcomes"].count("done"),
+        }
+    goals["50x5_median_le_5ms"] = by[("peel", 50, 5)]["median_ms"] <= 5.0
+    if ("peel", 1000, 10) in by:
+        goals["1000x10_median_le_100ms"] = by[("peel", 1000, 10)]["median_ms"] <= 100.0
+    return {"benchmark": "planner", "model": model_info, "threads": args.threads,
+            "device": "cpu", "torch": torch.__version__, "tasks": seeds,
+            "planner_config": base.as_dict(), "cases": out_cases, "goals": goals}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``peel bench planner [--json] [--quick] [--tasks N] [--repeats N] [--threads N]``."""
+    ap = argparse.ArgumentParser(prog="peel bench planner", description=__doc__.split("\n")[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object (default)")
+    ap.add_argument("--quick", action="store_true",
+                    help="small version: cases (50,5) and (100,5), 2 tasks, 20 timing calls")
+    ap.add_argument("--tasks", type=int, default=None, help="simulator tasks per case (10)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed calls per case (100)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch CPU threads (1: on a shared 2-core machine 2 threads contend)")
+    ap.add_argument("--progress", action="store_true", help="tqdm progress bar on stderr")
+    args = ap.parse_args(argv)
+    if args.tasks is None:
+        args.tasks = 2 if args.quick else 10
+    if args.repeats is None:
+        args.repeats = 20 if args.quick else 100
+    for name in ("tasks", "repeats", "threads"):
+        if getattr(args, name) < 1:
+            raise PeelError(f"--{name} must be at least 1")
+    print(json.dumps(run(args), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""Planner parameters: cost (Eq. 3-5), MPPI (Algorithm 2, Eq. 28-38) and safety (section 4.2).
+
+The values live in ``config/peel_planner_node.yaml`` (section ``peel_planner_node:``), each
+commented with its equation and unit. :class:`PlannerConfig` is the validated, typed view of the
+flat parameter dict that ROS 2 would hand to the node.
+
+Time base (docs/CONTRACT.md, section 4.2): the forward model steps ``dt_s`` = 0.1 s; one MPPI
+horizon step holds the sampled velocity ``v_t = u_t + eps_t`` for ``steps_per_horizon_step``
+model steps, which by default is one control period (0.5 s = 5 x 0.1 s). A plan therefore looks
+``horizon * steps_per_horizon_step * dt_s`` seconds ahead (2.5 s by default).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+from peel_msgs_py.errors import ParameterError
+from peel_msgs_py.params import ParamSpec, load_node_params, validate
+
+NODE_NAME = "peel_planner_node"
+
+#: Every parameter the planner library reads, with its range and paper reference.
+PARAM_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("task.q0_mm", float, 0.0, "start position q_0, mm (Eq. 4)"),
+    ParamSpec("task.q_ter_mm", float, 25.0, "end position q_ter, mm (Eq. 4-5)", min=1e-3),
+    ParamSpec("task.t_max_s", float, 60.0, "upper bound time t_max, s (Eq. 5)", min=1e-3),
+    ParamSpec("task.dt_s", float, 0.1, "model step / sampling period, s (4.2)", min=1e-4),
+    ParamSpec("task.control_period_s", float, 0.5, "control period, s (4.2)", min=1e-4),
+    ParamSpec("cost.w_dis", float, 1.0, "progress weight w_dis (Eq. 4)", min=0.0),
+    ParamSpec("cost.w_fx", float, 0.25, "horizontal force weight w_fX (Eq. 4)", min=0.0),
+    ParamSpec("cost.w_fz", float, 0.25, "vertical force weight w_fZ (Eq. 4)", min=0.0),
+    ParamSpec("cost.f_lim_x_n", float, 20.0, "F_lim^RX, N (Eq. 4)", min=1e-6),
+    ParamSpec("cost.f_lim_z_n", float, 20.0, "F_lim^RZ, N (Eq. 4)", min=1e-6),
+    ParamSpec("cost.phi_late", float, 1.0, "phi, reached after t_max (Eq. 5)", min=0.0),
+    ParamSpec("cost.phi_fail", float, 2.0, "phi, not reached by t_max (Eq. 5)", min=0.0),
+    ParamSpec("cost.w_togo", float, 14.0, "cost-to-go per q_ter - q_0 left at the horizon end",
+              min=0.0),
+    ParamSpec("cost.barrier_w", float, 2.0, "barrier weight near the prewarning", min=0.0),
+    ParamSpec("cost.barrier_start_n", float, 15.0, "barrier onset |F|, N", min=0.0),
+    ParamSpec("cost.barrier_stop_w", float, 10.0, "cost of a predicted prewarning", min=0.0),
+    ParamSpec("mppi.n_samples", int, 50, "N sampled sequences (Alg. 2)", min=1, max=1_000_000),
+    ParamSpec("mppi.horizon", int, 5, "H horizon steps (Alg. 2)", min=1, max=1000),
+    ParamSpec("mppi.lambda", float, 0.1, "temperature lambda (Eq. 38)", min=1e-9),
+    ParamSpec("mppi.steps_per_horizon_step", int, 5, "model steps per horizon step", min=1,
+              max=1000),
+    ParamSpec("mppi.sigma0", float, 1.0, "initial Sigma, (mm/s)^2 (Eq. 2)", min=1e-12),
+    ParamSpec("mppi.sigma_min", float, 0.25, "Sigma floor, (mm/s)^2 (Alg. 2 l.17)", min=1e-12),
+    ParamSpec("mppi.sigma_max", float, 4.0, "Sigma ceiling, (mm/s)^2 (Alg. 2 l.17)", min=1e-12),
+    ParamSpec("mppi.sigma_window", int, 10, "errors kept in D_Sigma (Alg. 2 l.15)", min=1,
+              max=100_000),
+    ParamSpec("mppi.sigma_min_count", int, 3, "errors before Sigma is re-estimated", min=1,
+              max=100_000),
+    ParamSpec("mppi.u_min", float, 0.5, "lowest speed command, mm/s"),
+    ParamSpec("mppi.u_max", float, 8.0, "highest speed command, mm/s"),
+    ParamSpec("mppi.u_init", float, 1.0, "initial U / shift fill, mm/s"),
+    ParamSpec("mppi.shift_fill", str, "last", "shift fill (Alg. 2 l.18-19)",
+              choices=("last", "init")),
+    ParamSpec("mppi.control_cost_scale", float, 0.1, "factor on Eq. 38's control term", min=0.0),
+    ParamSpec("mppi.iterations", int, 1, "MPPI updates per plan()", min=1, max=1000),
+    ParamSpec("mppi.seed", int, 0, "noise seed", min=0),
+    ParamSpec("mppi.dtype", str, "float32", "torch dtype of rollouts",
+              choices=("float32", "float64")),
+    ParamSpec("safety.f_prewarn_n", float, 20.0, "safety prewarning on |F|, N (4.2)", min=1e-6),
+)
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Weights and limits of the cost J (Eq. 3-5) plus the planning barrier (issue 5, 3)."""
+
+    q0_mm: float = 0.0
+    q_ter_mm: float = 25.0
+    t_max_s: float = 60.0
+    dt_s: float = 0.1
+    w_dis: float = 1.0
+    w_fx: float = 0.25
+    w_fz: float = 0.25
+    f_lim_x_n: float = 20.0
+    f_lim_z_n: float = 20.0
+    phi_late: float = 1.0
+    phi_fail: float = 2.0
+    w_togo: float = 14.0
+    barrier_w: float = 2.0
+    barrier_start_n: float = 15.0
+    barrier_stop_w: float = 10.0
+    f_prewarn_n: float = 20.0
+
+
+@dataclass(frozen=True)
+class MppiConfig:
+    """Sampling, temperature, Sigma estimation and speed limits of Algorithm 2."""
+
+    n_samples: int = 50
+    horizon: int = 5
+    lam: float = 0.1
+    steps_per_horizon_step: int = 5
+    sigma0: float = 1.0
+    sigma_min: float = 0.25
+    sigma_max: float = 4.0
+    sigma_window: int = 10
+    sigma_min_count: int = 3
+    u_min: float = 0.5
+    u_max: float = 8.0
+    u_init: float = 1.0
+    shift_fill: str = "last"
+    control_cost_scale: float = 0.1
+    iterations: int = 1
+    seed: int = 0
+    dtype: str = "float32"
+    dt_s: float = 0.1
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """End-of-task conditions (section 4.2)."""
+
+    f_prewarn_n: float = 20.0
+    t_max_s: float = 60.0
+    q_ter_mm: float = 25.0
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """The planner's whole configuration; build it with :meth:`from_params`."""
+
+    cost: CostConfig = CostConfig()
+    mppi: MppiConfig = MppiConfig()
+    safety: SafetyConfig = SafetyConfig()
+    control_period_s: float = 0.5
+
+    @classmethod
+    def from_params(cls, flat: dict[str, Any], *, allow_unknown: bool = True) -> PlannerConfig:
+        """Validate a flat (dotted-name) parameter dict; unknown names are ignored by default
+        because the node's parameter set also holds non-library names (``model.path``...)."""
+        p = validate(PARAM_SPECS, flat, allow_unknown=allow_unknown)
+        if p["mppi.u_min"] > p["mppi.u_max"]:
+            raise ParameterError("parameter 'mppi.u_min' must not exceed 'mppi.u_max'")
+        if p["mppi.sigma_min"] > p["mppi.sigma_max"]:
+            raise ParameterError("parameter 'mppi.sigma_min' must not exceed 'mppi.sigma_max'")
+        if p["task.q_ter_mm"] <= p["task.q0_mm"]:
+            raise ParameterError("parameter 'task.q_ter_mm' must exceed 'task.q0_mm'")
+        if p["cost.barrier_start_n"] >= p["safety.f_prewarn_n"]:
+            raise ParameterError("parameter 'cost.barrier_start_n' must be below "
+                                 "'safety.f_prewarn_n'")
+        period = p["task.dt_s"] * p["mppi.steps_per_horizon_step"]
+        if abs(period - p["task.control_period_s"]) > 1e-9 * max(1.0, period):
+            raise ParameterError(
+                f"parameter 'task.control_period_s' = {p['task.control_period_s']} must equal "
+                f"task.dt_s * mppi.steps_per_horizon_step = {period:g}"
+            )
+        cost = CostConfig(
+            q0_mm=p["task.q0_mm"], q_ter_mm=p["task.q_ter_mm"], t_max_s=p["task.t_max_s"],
+            dt_s=p["task.dt_s"], w_dis=p["cost.w_dis"], w_fx=p["cost.w_fx"], w_fz=p["cost.w_fz"],
+            f_lim_x_n=p["cost.f_lim_x_n"], f_lim_z_n=p["cost.f_lim_z_n"],
+            phi_late=p["cost.phi_late"], phi_fail=p["cost.phi_fail"], w_togo=p["cost.w_togo"],
+            barrier_w=p["cost.barrier_w"], barrier_start_n=p["cost.barrier_start_n"],
+            barrier_stop_w=p["cost.barrier_stop_w"], f_prewarn_n=p["safety.f_prewarn_n"],
+        )
+        mppi = MppiConfig(
+            n_samples=p["mppi.n_samples"], horizon=p["mppi.horizon"], lam=p["mppi.lambda"],
+            steps_per_horizon_step=p["mppi.steps_per_horizon_step"], sigma0=p["mppi.sigma0"],
+            sigma_min=p["mppi.sigma_min"], sigma_max=p["mppi.sigma_max"],
+            sigma_window=p["mppi.sigma_window"], sigma_min_count=p["mppi.sigma_min_count"],
+            u_min=p["mppi.u_min"], u_max=p["mppi.u_max"], u_init=p["mppi.u_init"],
+            shift_fill=p["mppi.shift_fill"], control_cost_scale=p["mppi.control_cost_scale"],
+            iterations=p["mppi.iterations"], seed=p["mppi.seed"], dtype=p["mppi.dtype"],
+            dt_s=p["task.dt_s"],
+        )
+        safety = SafetyConfig(f_prewarn_n=p["safety.f_prewarn_n"], t_max_s=p["task.t_max_s"],
+                              q_ter_mm=p["task.q_ter_mm"])
+        return cls(cost=cost, mppi=mppi, safety=safety,
+                   control_period_s=p["task.control_period_s"])
+
+    def to_params(self) -> dict[str, Any]:
+        """The flat parameter dict this config was built from (inverse of :meth:`from_params`)."""
+        c, m, s = self.cost, self.mppi, self.safety
+        return {
+            "task.q0_mm": c.q0_mm, "task.q_ter_mm": c.q_ter_mm, "task.t_max_s": c.t_max_s,
+            "task.dt_s": c.dt_s, "task.control_period_s": self.control_period_s,
+            "cost.w_dis": c.w_dis, "cost.w_fx": c.w_fx, "cost.w_fz": c.w_fz,
+            "cost.f_lim_x_n": c.f_lim_x_n, "cost.f_lim_z_n": c.f_lim_z_n,
+            "cost.phi_late": c.phi_late, "cost.phi_fail": c.phi_fail, "cost.w_togo": c.w_togo,
+            "cost.barrier_w": c.barrier_w, "cost.barrier_start_n": c.barrier_start_n,
+            "cost.barrier_stop_w": c.barrier_stop_w,
+            "mppi.n_samples": m.n_samples, "mppi.horizon": m.horizon, "mppi.lambda": m.lam,
+            "mppi.steps_per_horizon_step": m.steps_per_horizon_step, "mppi.sigma0": m.sigma0,
+            "mppi.sigma_min": m.sigma_min, "mppi.sigma_max": m.sigma_max,
+            "mppi.sigma_window": m.sigma_window, "mppi.sigma_min_count": m.sigma_min_count,
+            "mppi.u_min": m.u_min, "mppi.u_max": m.u_max, "mppi.u_init": m.u_init,
+            "mppi.shift_fill": m.shift_fill, "mppi.control_cost_scale": m.control_cost_scale,
+            "mppi.iterations": m.iterations, "mppi.seed": m.seed, "mppi.dtype": m.dtype,
+            "safety.f_prewarn_n": s.f_prewarn_n,
+        }
+
+    def replace(self, **flat: Any) -> PlannerConfig:
+        """A copy with some flat parameters changed, e.g. ``cfg.replace(**{"mppi.horizon": 10})``."""
+        params = self.to_params()
+        params.update(flat)
+        return PlannerConfig.from_params(params, allow_unknown=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Nested plain dict (for JSON reports)."""
+        return {f.name: (asdict(getattr(self, f.name)) if f.name != "control_period_s"
+                         else self.control_period_s) for f in fields(self)}
+
+
+def load_planner_config(overrides: str | os.PathLike[str] | None = None) -> PlannerConfig:
+    """The shipped ``config/peel_planner_node.yaml``, with an optional override file on top."""
+    return PlannerConfig.from_params(load_node_params(NODE_NAME, overrides))

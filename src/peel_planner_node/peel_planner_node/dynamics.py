@@ -1,0 +1,131 @@
+"""What the planner rolls out: the Dynamics protocol and its implementations.
+
+A :class:`Dynamics` maps the measured history (a :class:`~peel_msgs_py.trajectory.Trajectory`
+ending at the current sample) and N velocity sequences ``v`` [N, S] -- one velocity per 100 ms
+model step -- to the predicted samples [N, S, 3] with columns (q_mm, fx_N, fz_N). This is line 9
+of Algorithm 2, ``x <- x + F_theta(x, v_t) dt``, batched over the N samples.
+
+- :class:`LearnedDynamics` wraps the forward model
+  (``model_learner_node.predictor.ForcePredictor``, Eq. 1-2): q advances by v dt, the forces
+  come from the model fed with the last h rows [q, v, fx, fz].
+- :class:`OracleDynamics` wraps any object with the simulator's
+  ``rollout(v: ndarray[N, S]) -> ndarray[N, S, 3]`` (``peel_sim_node.env.PeelEnv``): the true,
+  noise-free dynamics, for tests and for the oracle baseline. This package may not import the
+  simulator (docs/CONTRACT.md), so the env is duck-typed.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+
+
+@runtime_checkable
+class Dynamics(Protocol):
+    """Batched forward simulation used by the planner (Algorithm 2, line 9)."""
+
+    def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+        """Predicted (q_mm, fx_N, fz_N) [N, S, 3] for velocities ``v`` [N, S] (mm/s)."""
+        ...
+
+
+def history_window(history: Trajectory, h: int) -> np.ndarray:
+    """The last ``h`` state rows [q, v, fx, fz] of ``history`` (Eq. 2), shape (h, 4).
+
+    A history shorter than h (the first control periods of a task) is padded at the front with
+    its first row with v = 0: the blade stood still at C before the task started.
+    """
+    if len(history) == 0:
+        raise PeelError("history 't' is empty: the planner needs at least the sample at t=0")
+    rows = history.states()[-h:]
+    if not np.all(np.isfinite(rows)):
+        raise PeelError("history holds non-finite q, v, fx or fz in its last samples")
+    if rows.shape[0] < h:
+        first = rows[:1].copy()
+        first[0, 1] = 0.0
+        rows = np.concatenate([np.repeat(first, h - rows.shape[0], axis=0), rows], axis=0)
+    return rows
+
+
+class LearnedDynamics:
+    """The learned forward model F_theta (Eq. 1-2) as planner dynamics.
+
+    Each model step s: F_{s+1} = predictor.predict(window_s, v_s), q_{s+1} = q_s + v_s dt,
+    v_{s+1} = v_s (the velocity command is assumed tracked inside the rollout, Eq. 2's noise is
+    what MPPI samples), then the window slides by one row. The windows are views into one
+    preallocated [N, h + S, 4] buffer, so no tensor is concatenated in the loop.
+
+    ``fast=True`` (default) runs the ``ours`` / ``cnn-lstm`` network through
+    :class:`~.fused.FusedConvAttentionLSTM`, the same arithmetic with fewer, fused torch ops
+    (one convolution for the three kernels, torch's fused LSTM, normalisation folded into the
+    force update); it reads the predictor's current weights on every rollout, so in-place
+    updates by the learner are seen. Other architectures use ``predictor.predict``.
+    """
+
+    def __init__(self, predictor: Any, *, dt_s: float = 0.1, fast: bool = True) -> None:
+        if not hasattr(predictor, "predict") or not hasattr(predictor, "h"):
+            raise PeelError("model must be a ForcePredictor with .h and .predict(hist, v_next)")
+        self.predictor = predictor
+        self.h = int(predictor.h)
+        self.dt_s = float(dt_s)
+        try:
+            p = next(predictor.parameters())
+            self.dtype, self.device = p.dtype, p.device
+        except (AttributeError, StopIteration):
+            self.dtype, self.device = torch.float32, torch.device("cpu")
+        if hasattr(predictor, "eval"):
+            predictor.eval()
+        self.fused = None
+        if fast:
+            from .fused import FusedConvAttentionLSTM
+
+            if FusedConvAttentionLSTM.supports(predictor):
+                self.fused = FusedConvAttentionLSTM(predictor)
+
+    def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+        """Predicted (q, fx, fz) [N, S, 3] for ``v`` [N, S] from the end of ``history``."""
+        if self.fused is not None:
+            window = history_window(history, self.h)
+            with torch.inference_mode():
+                return self.fused.rollout(window, v, self.dt_s)
+        h = self.h
+        n, s = v.shape
+        window = history_window(history, h)
+        with torch.inference_mode():
+            base = torch.as_tensor(window, dtype=self.dtype, device=self.device)
+            v = v.to(dtype=self.dtype, device=self.device)
+            buf = torch.empty((n, h + s, 4), dtype=self.dtype, device=self.device)
+            buf[:, :h] = base
+            # q_s = q_now + dt * cumsum(v): computed once for all steps
+            buf[:, h:, 0] = base[-1, 0] + self.dt_s * torch.cumsum(v, dim=1)
+            buf[:, h:, 1] = v
+            for k in range(s):
+                buf[:, h + k, 2:4] = self.predictor.predict(buf[:, k:k + h], v[:, k])
+            return buf[:, h:][:, :, [0, 2, 3]]
+
+
+class OracleDynamics:
+    """The simulator's exact, noise-free dynamics (``env.rollout``) as planner dynamics.
+
+    ``env`` is anything with ``rollout(v: ndarray[N, S]) -> ndarray[N, S, 3]`` that simulates
+    from its own current state (``PeelEnv``); the history argument is ignored because the env
+    already is at the end of it.
+    """
+
+    def __init__(self, env: Any, *, dtype: torch.dtype = torch.float32) -> None:
+        if not callable(getattr(env, "rollout", None)):
+            raise PeelError("env must provide rollout(v) -> ndarray[N, S, 3]")
+        self.env = env
+        self.dtype = dtype
+
+    def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+        """Predicted (q, fx, fz) [N, S, 3] by the env for ``v`` [N, S] (mm/s)."""
+        out = np.asarray(self.env.rollout(v.detach().cpu().numpy().astype(np.float64)))
+        if out.shape != (*v.shape, 3):
+            raise PeelError(f"env.rollout returned shape {out.shape}, expected {(*v.shape, 3)}")
+        return torch.as_tensor(out, dtype=self.dtype)

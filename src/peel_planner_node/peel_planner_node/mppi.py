@@ -1,0 +1,178 @@
+"""OL-MPPI planning (paper section 3.5, Eq. 28-38, Algorithm 2).
+
+One :meth:`Planner.plan` call is one pass of Algorithm 2's inner loop:
+
+1. (line 2) the :class:`~.safety.SafetyMonitor` ends the task on a 20 N prewarning, t > t_max or
+   q >= q_ter: the command is 0 and the reason is kept (``planner.stop``);
+2. (lines 15-17, for the previous command) the measured velocity v* over the control period
+   that just ended, ``(q_now - q_issue) / (t_now - t_issue)``, is compared with the command u*
+   issued then; the error joins D_Sigma (the last ``sigma_window`` errors) and Sigma becomes
+   their mean square, ``Sigma = mean(e^2)``, clamped to [sigma_min, sigma_max]; until
+   ``sigma_min_count`` errors exist Sigma stays sigma0. The mean square about zero (not the
+   sample variance) is used because Eq. 2 models v ~ N(u, Sigma): a bias of v* is spread too;
+3. (lines 4-13) N sequences eps^k ~ N(0, Sigma) over the H horizon steps;
+   ``v^k = clip(u + eps^k, u_min, u_max)`` and eps^k is replaced by the clipped ``v^k - u`` (so
+   the control term sees the perturbation actually applied); each v^k_t is held for
+   ``steps_per_horizon_step`` model steps of dt (default 5 x 0.1 s = one 0.5 s control period)
+   and the whole batch is rolled out at once through the Dynamics; J^k = sum of L_t + barrier
+   + phi (:class:`~.cost.Cost`);
+4. (line 13, Eq. 38) ``S^k = J^k + c lambda/2 sum_t (u_t Sigma^-1 u_t + 2 eps^k_t Sigma^-1 u_t)``
+   with c = ``control_cost_scale`` (1 in the paper), and
+   ``omega^k = exp(-(S^k - min_j S^j) / lambda) / eta`` -- subtracting the minimum before the
+   exponential (the "min-cost shift") leaves omega unchanged and keeps exp() finite;
+5. (line 14, Eq. 31) ``U = sum_k omega^k v^k`` -- already inside the speed limits because each
+   v^k is; repeated ``iterations`` times (1 in the paper);
+6. (line 15) u* = U_0 is returned; (lines 18-19) U is shifted by one horizon step and the last
+   entry is refilled (``shift_fill``: repeat the last, or u_init).
+
+Sigma is a scalar variance (mm/s)^2: the control is one-dimensional (m = 1, section 2).
+All planner state (U, Sigma, D_Sigma, the noise generator, the last command) survives
+:meth:`Planner.set_dynamics`, so the model can be swapped between two calls of plan().
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch
+
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+
+from .config import PlannerConfig
+from .cost import Cost
+from .dynamics import Dynamics
+from .safety import SafetyMonitor, Stop
+
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def eq38_weights(cost: torch.Tensor, eps: torch.Tensor, u: torch.Tensor, sigma: float,
+                 lam: float, control_cost_scale: float = 1.0) -> torch.Tensor:
+    """omega of Eq. 38 for costs J [N], perturbations eps [N, H] and the mean sequence u [H].
+
+    ``S = J + c lambda/2 sum_t (u_t^2 / Sigma + 2 eps_t u_t / Sigma)``;
+    ``omega = exp(-(S - min S) / lambda) / sum(...)`` (the shift cancels in the normalisation).
+    """
+    sig_inv = 1.0 / sigma
+    ctrl = 0.5 * lam * control_cost_scale * (
+        (u * u).sum() * sig_inv + 2.0 * (eps * u.unsqueeze(0)).sum(dim=1) * sig_inv)
+    s = cost + ctrl
+    return torch.softmax(-(s - s.min()) / lam, dim=0)
+
+
+class Planner:
+    """OL-MPPI (Algorithm 2) over a swappable :class:`~.dynamics.Dynamics`.
+
+    ``Planner(dynamics, cost, config)``; ``plan(history) -> u`` (mm/s) once per control period;
+    ``reset()`` before a new task; ``set_dynamics(dyn)`` swaps the model and keeps the state.
+    """
+
+    def __init__(self, dynamics: Dynamics, cost: Cost | None = None,
+                 config: PlannerConfig | None = None) -> None:
+        self.config = config if config is not None else PlannerConfig()
+        self.cost = cost if cost is not None else Cost(self.config.cost)
+        m = self.config.mppi
+        self.n, self.h, self.lam = m.n_samples, m.horizon, m.lam
+        self.k = m.steps_per_horizon_step
+        self.dtype = _DTYPES[m.dtype]
+        self.safety = SafetyMonitor(self.config.safety)
+        self.set_dynamics(dynamics)
+        self._gen = torch.Generator(device="cpu")
+        self._noise = torch.empty((self.n, self.h), dtype=self.dtype)
+        self.last: dict[str, Any] = {}
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Start a new task: U = u_init, Sigma = sigma0, empty D_Sigma, noise seed restarted."""
+        m = self.config.mppi
+        self.U = torch.full((self.h,), float(m.u_init), dtype=self.dtype).clamp(m.u_min, m.u_max)
+        self.sigma = float(m.sigma0)
+        self.errors: deque[float] = deque(maxlen=m.sigma_window)
+        self._gen.manual_seed(int(m.seed))
+        self._issued: tuple[float, float, float] | None = None  # (t, q, u*) of the last command
+        self.safety.reset()
+        self.last = {}
+
+    def set_dynamics(self, dynamics: Dynamics) -> None:
+        """Swap the forward model; U, Sigma, D_Sigma and the noise stream are kept."""
+        if not callable(getattr(dynamics, "rollout", None)):
+            raise PeelError("dynamics must provide rollout(history, v) -> Tensor[N, S, 3]")
+        self.dynamics = dynamics
+
+    @property
+    def stop(self) -> Stop | None:
+        """Why the task ended (None while it runs)."""
+        return self.safety.stop
+
+    # ------------------------------------------------------------------ Sigma (lines 15-17)
+    def observe(self, v_meas: float, u_cmd: float) -> float:
+        """Add one velocity error v* - u* to D_Sigma and re-estimate Sigma; returns Sigma."""
+        m = self.config.mppi
+        err = float(v_meas) - float(u_cmd)
+        if not math.isfinite(err):
+            raise PeelError(f"measured velocity v* = {v_meas!r} is not finite")
+        self.errors.append(err)
+        if len(self.errors) >= m.sigma_min_count:
+            ms = float(np.mean(np.square(np.asarray(self.errors))))
+            self.sigma = min(max(ms, m.sigma_min), m.sigma_max)
+        return self.sigma
+
+    def _measure(self, history: Trajectory) -> None:
+        if self._issued is None:
+            return
+        t0, q0, u0 = self._issued
+        t1, q1 = float(history.t[-1]), float(history.q[-1])
+        if t1 > t0 + 1e-9:
+            self.observe((q1 - q0) / (t1 - t0), u0)
+            self._issued = None
+
+    # ------------------------------------------------------------------ MPPI (lines 4-14)
+    def update(self, history: Trajectory) -> np.ndarray:
+        """One MPPI update of U from ``history`` (Algorithm 2 lines 4-14); returns the new U."""
+        m = self.config.mppi
+        t_now, q_now = float(history.t[-1]), float(history.q[-1])
+        with torch.inference_mode():
+            torch.randn((self.n, self.h), generator=self._gen, out=self._noise)
+            u = self.U
+            v = torch.clamp(u + self._noise * math.sqrt(self.sigma), m.u_min, m.u_max)
+            eps = v - u
+            v_model = v.repeat_interleave(self.k, dim=1) if self.k > 1 else v
+            out = self.dynamics.rollout(history, v_model)
+            if out.shape != (self.n, self.h * self.k, 3):
+                raise PeelError(f"dynamics returned shape {tuple(out.shape)}, "
+                                f"expected {(self.n, self.h * self.k, 3)}")
+            j = self.cost.rollout_cost(q_now, t_now, out).to(self.dtype)
+            if not bool(torch.isfinite(j).all()):
+                raise PeelError("rollout cost is not finite: the model predicted NaN/inf forces")
+            omega = eq38_weights(j, eps, u, self.sigma, self.lam, m.control_cost_scale)
+            self.U = omega @ v
+            self.last = {"omega": omega, "cost": j, "v": v, "eps": eps,
+                         "ess": float(1.0 / (omega * omega).sum())}
+        return self.U.numpy().copy()
+
+    def _shift(self) -> None:
+        m = self.config.mppi
+        fill = self.U[-1] if m.shift_fill == "last" else torch.tensor(m.u_init, dtype=self.dtype)
+        self.U = torch.cat([self.U[1:], fill.reshape(1)]).clamp(m.u_min, m.u_max)
+
+    def plan(self, history: Trajectory) -> float:
+        """The blade speed command u* (mm/s) for the next control period (Algorithm 2)."""
+        if len(history) == 0:
+            raise PeelError("history 't' is empty: the planner needs at least the sample at t=0")
+        if self.safety.check(history) is not None:
+            return 0.0
+        self._measure(history)
+        for _ in range(self.config.mppi.iterations):
+            self.update(history)
+        m = self.config.mppi
+        u_star = float(min(max(float(self.U[0]), m.u_min), m.u_max))
+        self._issued = (float(history.t[-1]), float(history.q[-1]), u_star)
+        self._shift()
+        return u_star
+
+    __call__ = plan

@@ -1,0 +1,96 @@
+"""LearnedDynamics over the real ForcePredictor: the fused rollout equals step-by-step predict()."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from model_learner_node.config import ModelConfig
+from model_learner_node.predictor import ForcePredictor, Normalization
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+from peel_planner_node.dynamics import LearnedDynamics, OracleDynamics, history_window
+
+torch.set_num_threads(1)
+NORM = Normalization(in_mean=(10.0, 2.0, 6.0, 4.0), in_std=(7.0, 1.5, 3.0, 2.0),
+                     out_mean=(0.1, -0.05), out_std=(0.5, 0.3))
+
+
+def history(n: int = 20, seed: int = 0) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.1
+    return Trajectory(t=t, q=np.cumsum(np.full(n, 0.2)), v=np.full(n, 2.0), u=np.full(n, 2.0),
+                      fx=8 + rng.normal(size=n), fz=5 + rng.normal(size=n), psi=np.full(n, np.nan))
+
+
+def reference_rollout(pred: ForcePredictor, hist: Trajectory, v: torch.Tensor) -> torch.Tensor:
+    """Independent, unbatched-in-time evaluation with predictor.predict, one step at a time."""
+    h = pred.h
+    rows = torch.tensor(history_window(hist, h), dtype=torch.float32)
+    win = rows.unsqueeze(0).repeat(v.shape[0], 1, 1)
+    out = []
+    with torch.no_grad():
+        for k in range(v.shape[1]):
+            f = pred.predict(win, v[:, k])
+            q = win[:, -1, 0] + 0.1 * v[:, k]
+            row = torch.stack([q, v[:, k], f[:, 0], f[:, 1]], dim=1)
+            win = torch.cat([win[:, 1:], row.unsqueeze(1)], dim=1)
+            out.append(torch.stack([q, f[:, 0], f[:, 1]], dim=1))
+    return torch.stack(out, dim=1)
+
+
+@pytest.mark.parametrize("arch", ["ours", "cnn-lstm", "mlp"])
+def test_learned_rollout_matches_stepwise_predict(arch: str) -> None:
+    torch.manual_seed(0)
+    pred = ForcePredictor(ModelConfig().with_arch(arch), NORM)
+    dyn = LearnedDynamics(pred)
+    assert (dyn.fused is not None) == (arch != "mlp")
+    v = torch.rand(7, 12) * 4.0
+    hist = history()
+    got = dyn.rollout(hist, v)
+    assert got.shape == (7, 12, 3)
+    want = reference_rollout(pred, hist, v)
+    torch.testing.assert_close(got, want, atol=2e-4, rtol=1e-4)
+    torch.testing.assert_close(LearnedDynamics(pred, fast=False).rollout(hist, v), want,
+                               atol=2e-5, rtol=1e-5)
+
+
+def test_fused_rollout_sees_in_place_weight_updates() -> None:
+    torch.manual_seed(1)
+    pred = ForcePredictor(ModelConfig(), NORM)
+    dyn = LearnedDynamics(pred)
+    v = torch.rand(3, 6) * 3.0
+    before = dyn.rollout(history(), v).clone()
+    with torch.no_grad():
+        for p in pred.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    after = dyn.rollout(history(), v)
+    assert not torch.allclose(before, after)
+    torch.testing.assert_close(after, reference_rollout(pred, history(), v), atol=2e-4, rtol=1e-4)
+
+
+def test_short_history_is_padded_with_rest() -> None:
+    hist = history(3)
+    win = history_window(hist, 10)
+    assert win.shape == (10, 4)
+    np.testing.assert_allclose(win[-3:], hist.states())
+    assert np.all(win[:7, 1] == 0.0) and np.all(win[:7, 0] == hist.q[0])
+    with pytest.raises(PeelError, match="empty"):
+        history_window(history(0), 10)
+
+
+def test_oracle_adapter_checks_shape() -> None:
+    class Env:
+        def rollout(self, v):
+            return np.stack([v.cumsum(1) * 0.1, v, v], axis=-1)
+
+    out = OracleDynamics(Env()).rollout(history(), torch.ones(2, 4))
+    assert out.shape == (2, 4, 3) and float(out[0, -1, 0]) == pytest.approx(0.4)
+
+    class Bad:
+        def rollout(self, v):
+            return np.zeros((1, 1, 3))
+
+    with pytest.raises(PeelError, match="shape"):
+        OracleDynamics(Bad()).rollout(history(), torch.ones(2, 4))

@@ -1,0 +1,250 @@
+"""OL-MPPI core (Algorithm 2, Eq. 31, Eq. 38): weights, convergence, Sigma, model swap."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+from peel_planner_node.config import PlannerConfig
+from peel_planner_node.cost import Cost
+from peel_planner_node.mppi import Planner, eq38_weights
+
+torch.set_num_threads(1)
+
+
+def start_history(q: float = 0.0, t: float = 0.0) -> Trajectory:
+    return Trajectory(t=[t], q=[q], v=[0.0], u=[0.0], fx=[1.0], fz=[1.0], psi=[np.nan])
+
+
+def append(hist: Trajectory, v: float, n: int = 5, u: float = 0.0) -> Trajectory:
+    """The history after n samples at measured velocity v (forces stay small)."""
+    arr = hist.as_array()
+    rows = []
+    t, q = arr[-1, 0], arr[-1, 1]
+    for _ in range(n):
+        t, q = t + 0.1, q + 0.1 * v
+        rows.append([t, q, v, u, 1.0, 1.0, np.nan])
+    return Trajectory.from_array(np.vstack([arr, np.array(rows)]))
+
+
+class LinearDynamics:
+    """q_s = q_now + dt * cumsum(v); fx = a * v; fz = b."""
+
+    def __init__(self, a: float = 1.5, b: float = 3.0, dt: float = 0.1) -> None:
+        self.a, self.b, self.dt = a, b, dt
+        self.calls = 0
+
+    def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+        self.calls += 1
+        q = float(history.q[-1]) + self.dt * torch.cumsum(v, dim=1)
+        return torch.stack([q, self.a * v, torch.full_like(v, self.b)], dim=-1)
+
+
+class QuadraticCost:
+    """J = w/2 * sum_s (q_s - target_s)^2 over the model steps of a rollout."""
+
+    def __init__(self, target: torch.Tensor, w: float) -> None:
+        self.target, self.w = target, w
+
+    def rollout_cost(self, q_prev: float, t_now: float, out: torch.Tensor) -> torch.Tensor:
+        return 0.5 * self.w * ((out[..., 0] - self.target) ** 2).sum(dim=1)
+
+
+def config(**flat) -> PlannerConfig:
+    return PlannerConfig().replace(**flat)
+
+
+# ---------------------------------------------------------------- Eq. 38
+def direct_eq38(cost, eps, u, sigma, lam):
+    """Unvectorised Eq. 38: omega_k = exp(-(J_k + lam/2 sum_t (u Sinv u + 2 eps Sinv u))/lam)/eta."""
+    n, h = len(eps), len(u)
+    s = []
+    for k in range(n):
+        ctrl = 0.0
+        for t in range(h):
+            ctrl += u[t] * (1.0 / sigma) * u[t] + 2.0 * eps[k][t] * (1.0 / sigma) * u[t]
+        s.append(cost[k] + lam / 2.0 * ctrl)
+    unnorm = [math.exp(-sk / lam) for sk in s]
+    eta = sum(unnorm)
+    return [w / eta for w in unnorm]
+
+
+def test_eq38_weights_equal_direct_evaluation() -> None:
+    rng = np.random.default_rng(3)
+    n, h, sigma, lam = 6, 4, 0.7, 0.5
+    cost = rng.uniform(0.0, 2.0, n)
+    eps = rng.normal(0.0, math.sqrt(sigma), (n, h))
+    u = rng.uniform(0.5, 2.0, h)
+    want = direct_eq38(cost.tolist(), eps.tolist(), u.tolist(), sigma, lam)
+    got = eq38_weights(torch.tensor(cost), torch.tensor(eps), torch.tensor(u), sigma, lam)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-10, atol=1e-14)
+    assert got.sum().item() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_planner_update_uses_eq38_and_eq31() -> None:
+    """One update of the real planner: its omega is Eq. 38 of its samples, U = sum omega v."""
+    cfg = config(**{"mppi.n_samples": 7, "mppi.horizon": 3, "mppi.dtype": "float64",
+                    "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
+                    "mppi.control_cost_scale": 1.0})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    u_before = planner.U.clone()
+    u_after = planner.update(append(start_history(), 1.0))
+    last = planner.last
+    v = last["v"].numpy()
+    eps = last["eps"].numpy()
+    np.testing.assert_allclose(eps, v - u_before.numpy()[None, :], atol=1e-12)
+    want = direct_eq38(last["cost"].tolist(), eps.tolist(), u_before.tolist(), 0.8, 0.3)
+    np.testing.assert_allclose(last["omega"].numpy(), want, rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(u_after, (np.array(want)[:, None] * v).sum(axis=0), rtol=1e-9)
+    assert np.all(v >= cfg.mppi.u_min) and np.all(v <= cfg.mppi.u_max)
+
+
+# ---------------------------------------------------------------- convergence (LQ case)
+@pytest.mark.parametrize("scale", [1.0, 0.0])
+def test_linear_quadratic_plan_converges_to_known_optimum(scale: float) -> None:
+    """Linear model q = q0 + dt L E V and J = w/2 |A V - b|^2: MPPI's fixed point is the mean of
+    q*(V) ~ exp(-J/lambda) N(0, Sigma) (Eq. 33), V* = (w A'A + c lambda/Sigma I)^-1 w A'b; with
+    the control term switched off (c = 0) it is the unregularised minimiser."""
+    h, k, dt, sigma, lam, w = 3, 5, 0.1, 1.0, 0.1, 0.2
+    cfg = config(**{"mppi.n_samples": 4000, "mppi.horizon": h, "mppi.lambda": lam,
+                    "mppi.sigma0": sigma, "mppi.u_min": -50.0, "mppi.u_max": 50.0,
+                    "mppi.u_init": 0.0, "mppi.dtype": "float64", "mppi.seed": 11,
+                    "mppi.control_cost_scale": scale})
+    s = h * k
+    lower = np.tril(np.ones((s, s)))
+    expand = np.kron(np.eye(h), np.ones((k, 1)))
+    a = dt * lower @ expand                       # q = q0 + A V
+    r = np.array([2.0, 1.0, 3.0])                 # velocities that would hit the target
+    b = a @ r                                     # target minus q0 (q0 = 0)
+    v_star = np.linalg.solve(w * a.T @ a + scale * lam / sigma * np.eye(h), w * a.T @ b)
+    planner = Planner(LinearDynamics(dt=dt), QuadraticCost(torch.tensor(b), w), cfg)
+    hist = start_history()
+    trail = [planner.update(hist) for _ in range(40)]
+    got = np.mean(trail[20:], axis=0)
+    np.testing.assert_allclose(got, v_star, atol=0.05)
+    if scale == 1.0:  # the control term's shrinkage is visible, so this test can tell them apart
+        assert np.max(np.abs(v_star - r)) > 0.3
+    else:
+        np.testing.assert_allclose(v_star, r, atol=1e-9)
+
+
+# ---------------------------------------------------------------- Sigma (lines 15-17)
+def run_with_errors(planner: Planner, errors: list[float], hist: Trajectory) -> list[float]:
+    """Plan, then let the blade move at u* + e for one control period; returns Sigma after each."""
+    sigmas = []
+    for e in errors:
+        u = planner.plan(hist)
+        hist = append(hist, u + e, u=u)
+        planner.plan(hist)  # measures v* for the previous command
+        planner._issued = None  # measure exactly one error per injected value
+        sigmas.append(planner.sigma)
+    return sigmas
+
+
+def test_sigma_follows_injected_velocity_errors() -> None:
+    cfg = config(**{"mppi.sigma0": 1.0, "mppi.sigma_window": 6, "mppi.sigma_min_count": 3,
+                    "mppi.sigma_min": 0.01, "mppi.sigma_max": 9.0, "mppi.u_max": 3.0})
+    planner = Planner(LinearDynamics(a=0.1), Cost(cfg.cost), cfg)
+    hist = start_history()
+    s1 = run_with_errors(planner, [0.8, -0.8] * 4, hist)
+    assert s1[0] == pytest.approx(1.0)          # fewer than sigma_min_count errors: sigma0
+    assert s1[-1] == pytest.approx(0.64, rel=1e-6)
+    s2 = run_with_errors(planner, [1.5, -1.5] * 4, hist)
+    assert s2[0] < 2.25 and s2[-1] == pytest.approx(2.25, rel=1e-6)
+    s3 = run_with_errors(planner, [0.0] * 6, hist)
+    assert s3[-1] == pytest.approx(0.01)        # floor
+    s4 = run_with_errors(planner, [5.0] * 6, hist)
+    assert s4[-1] == pytest.approx(9.0)         # ceiling
+
+
+def test_sigma_estimates_gaussian_error_variance() -> None:
+    cfg = config(**{"mppi.sigma_window": 400, "mppi.sigma_min": 0.01, "mppi.sigma_max": 50.0})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    rng = np.random.default_rng(0)
+    for e in rng.normal(0.0, 1.7, 400):
+        planner.observe(2.0 + e, 2.0)
+    assert planner.sigma == pytest.approx(1.7 ** 2, rel=0.15)
+
+
+def test_plan_measures_average_velocity_of_the_period() -> None:
+    cfg = config(**{"mppi.sigma_min_count": 1, "mppi.sigma_min": 1e-6})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    hist = start_history()
+    u = planner.plan(hist)
+    planner.plan(append(hist, u + 0.5, u=u))
+    assert list(planner.errors) == [pytest.approx(0.5)]
+    assert planner.sigma == pytest.approx(0.25)
+
+
+# ---------------------------------------------------------------- state, swap, limits
+def test_set_dynamics_keeps_planner_state() -> None:
+    cfg = config(**{"mppi.sigma_min_count": 1})
+    d1, d2 = LinearDynamics(a=1.0), LinearDynamics(a=2.0)
+    planner = Planner(d1, Cost(cfg.cost), cfg)
+    hist = start_history()
+    for _ in range(3):
+        u = planner.plan(hist)
+        hist = append(hist, u + 0.3, u=u)
+    state = (planner.U.clone(), planner.sigma, list(planner.errors), planner._issued,
+             planner._gen.get_state().clone())
+    planner.set_dynamics(d2)
+    assert torch.equal(planner.U, state[0]) and planner.sigma == state[1]
+    assert list(planner.errors) == state[2] and planner._issued == state[3]
+    assert torch.equal(planner._gen.get_state(), state[4])
+    calls = d1.calls
+    planner.plan(hist)
+    assert d1.calls == calls and d2.calls == 1
+    assert len(planner.errors) == len(state[2]) + 1
+
+
+def test_same_seed_same_plan_and_reset_restarts() -> None:
+    cfg = PlannerConfig()
+    hist = append(start_history(), 1.0)
+    p1 = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    p2 = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    a = [p1.plan(hist) for _ in range(3)]
+    b = [p2.plan(hist) for _ in range(3)]
+    assert a == b
+    p1.reset()
+    assert p1.plan(hist) == a[0]
+
+
+def test_commands_stay_within_speed_limits() -> None:
+    cfg = config(**{"mppi.u_min": 0.5, "mppi.u_max": 2.0, "mppi.sigma0": 4.0, "mppi.u_init": 1.0,
+                    "mppi.sigma_min_count": 100, "cost.w_dis": 15.0})
+    planner = Planner(LinearDynamics(a=0.0, b=0.0), Cost(cfg.cost), cfg)
+    hist = start_history()
+    for _ in range(6):
+        u = planner.plan(hist)
+        assert 0.5 <= u <= 2.0
+        assert float(planner.last["v"].min()) >= 0.5 and float(planner.last["v"].max()) <= 2.0
+        hist = append(hist, u, u=u)
+    assert u > 1.5  # no force penalty: progress drives it towards u_max
+
+
+def test_shift_moves_u_by_one_horizon_step() -> None:
+    cfg = config(**{"mppi.shift_fill": "init", "mppi.u_init": 0.7})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    hist = start_history()
+    planner.update(hist)
+    before = planner.U.clone()
+    planner._shift()
+    np.testing.assert_allclose(planner.U[:-1].numpy(), before[1:].numpy())
+    assert float(planner.U[-1]) == pytest.approx(0.7)
+
+
+def test_bad_dynamics_output_is_refused() -> None:
+    class Wrong:
+        def rollout(self, history, v):
+            return torch.zeros(v.shape[0], 3, 3)
+
+    planner = Planner(Wrong(), Cost(), PlannerConfig())
+    with pytest.raises(PeelError, match="shape"):
+        planner.plan(start_history())
+    with pytest.raises(PeelError, match="rollout"):
+        planner.set_dynamics(object())
