@@ -2,8 +2,10 @@
 
 Other packages train on simulator data and plan against ``PeelEnv``; performance work on the
 engine loop and plant-side changes must leave the simulator's numbers bit-identical. The
-digests below were computed from the simulator before the rollout / stepping optimisations
-(the SHA-256 of the float64 little-endian bytes); a change of any value, however small, fails.
+digests below are the SHA-256 of the float64 little-endian bytes; a change of any value, however
+small, fails. They were last re-pinned when q became the robot carriage's (encoder) position
+instead of the blade's (forces unchanged, see docs/simulator.md); re-pin only on purpose, and
+then regenerate the shipped checkpoint (model_learner_node/checkpoints/PROVENANCE.md).
 """
 
 import hashlib
@@ -36,21 +38,21 @@ def test_sim_trajectory_and_rollout_are_pinned():
         h = env.history
     assert h.outcome == "running" and len(h) == 41
     # readable spot values first (a failure shows where), then every bit
-    assert h.q[-1] == 9.453733794313644
+    assert h.q[-1] == 13.570200356396244
     assert h.fx[-1] == 12.64
-    assert outs[0][2, -1].tolist() == [5.286448215990943, 13.684839761111368, 9.704338273315495]
+    assert outs[0][2, -1].tolist() == [9.363637315652754, 13.684839761111368, 9.704338273315495]
     assert digest(h.as_array()) == (
-        "c25035d125ee8bb77de05e23702fb6716da4bfcd8322bc8d9d48aee5dfc4a34c")
-    assert digest(*outs) == "5b641e41b44e3008cb67b088cfc4b69a8e30e72f8c76f82f7a6580cc05327deb"
+        "9046088444477380d82aa940212aebdf613dc3b438ef7ed6ce58729d7543aa9c")
+    assert digest(*outs) == "fdeda25311e2a2879deda0da90a0dc8217962fd5046ffb387f04281278ededc5"
 
 
 def test_sim_dataset_trajectories_are_pinned():
     """The trajectories `peel dataset --source sim` writes for set 3 of seed 5."""
     trs = generate_set(CFG, 3, 2, 5, "sim")
-    assert [(t.outcome, len(t)) for t in trs] == [("done", 89), ("done", 115)]
+    assert [(t.outcome, len(t)) for t in trs] == [("done", 81), ("done", 88)]
     assert [t.meta["env_seed"] for t in trs] == [6274229382737886243, 3461401157248930251]
-    assert trs[0].q[-1] == 25.385562843194627 and trs[1].fx[-1] == 6.47
+    assert trs[0].q[-1] == 25.432982252138427 and trs[1].fx[-1] == 9.81
     assert [digest(t.as_array()) for t in trs] == [
-        "4eec5e7916b9255b961ae113326af93582de7dc72105edfe203d7adefd24469e",
-        "492a4014c514f8c4f8c7a1e07352355f7d8d34721375e967662f607b85596ea7",
+        "8acc23605e320d4d77e8935fb8f84e1f7e7ff22109d55cb399c4924daa902509",
+        "5208ba0b5ba8c54d19be4c1709cff9bb5668a7a257750339cc71f3ecc1793858",
     ]

@@ -13,7 +13,10 @@ Per sample (dt = 0.1 s, ``scene.substeps`` engine steps):
 4. the engine's contact forces on the blade plus the compensation of Eq. 21-22 give the true
    (F_RX, F_RZ); the WEF-6A model adds bias, noise (and plant drift) and quantises.
 
-The task ends at q >= q_ter (``done``), on |F_RX| or |F_RZ| >= 20 N (``safety_stop``) or at
+The recorded position q is the robot carriage's (what the arm's encoders report, as on the real
+Nachi), so its velocity v scatters around the command (Eq. 2: v ~ N(u, Sigma)); the blade itself
+lags behind by the compliance deflection and its stick-slip shows in the forces. The task ends at
+q >= q_ter (``done``), on |F_RX| or |F_RZ| >= 20 N (``safety_stop``) or at
 t >= t_max (``timeout``) (4.2). :meth:`rollout` replays the noise-free dynamics from saved
 engine states for the planner's oracle.
 """
@@ -167,6 +170,7 @@ class PeelEnv:
         self.d.fx_true, self.d.fz_true = fx, fz
         mfx, mfz = self.sensor.read(fx, fz, 0.0, self.rng)
         self._append(0.0, 0.0, 0.0, mfx, mfz, psi)
+        self._blade_q = [self._x_blade / MM]
         self._hist: Trajectory | None = None
         return self.history
 
@@ -202,8 +206,12 @@ class PeelEnv:
         fx, fz, psi = self._advance(u, scatter)
         t = self._n * self._dt
         mfx, mfz = self.sensor.read(fx, fz, self._dt, self.rng)
-        q = self._x_blade / MM
+        # q is the robot's own (encoder) position of the carriage, as the real arm reports it; the
+        # blade lags it by the compliance deflection F_RX / k, so stick-slip shows in the forces
+        # while v = (q_k - q_{k-1}) / dt scatters around the command u (Eq. 2).
+        q = self.d.x_robot / MM
         self._append(t, q, (q - q_prev) / self._dt, mfx, mfz, psi)
+        self._blade_q.append(self._x_blade / MM)
         if abs(mfx) >= self._f_prewarn or abs(mfz) >= self._f_prewarn:
             self.outcome = "safety_stop"
         elif q >= self._q_ter:
@@ -211,6 +219,12 @@ class PeelEnv:
         elif t >= self._t_end:
             self.outcome = "timeout"
         self._hist = None
+
+    @property
+    def blade_q_mm(self) -> np.ndarray:
+        """Diagnostic (not a sensor): the blade's own position per sample, mm. It lags the
+        carriage position ``q`` by the compliance deflection and shows the stick-slip."""
+        return np.asarray(self._blade_q, dtype=np.float64)
 
     def close(self) -> None:
         """Release the PyBullet client."""
@@ -244,7 +258,7 @@ class PeelEnv:
                 self.scene.set_local(self._tile_factor(self.scene.blade_state()[0]))
                 for u in row:
                     fx, fz, _ = self._advance(u, 0.0)
-                    out.append((self._x_blade / MM, fx, fz))
+                    out.append((self.d.x_robot / MM, fx, fz))
         finally:
             self.scene.restore(sid)
             self.scene.remove_state(sid)
