@@ -56,6 +56,54 @@ def test_learned_rollout_matches_stepwise_predict(arch: str) -> None:
                                atol=2e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize("arch", ["ours", "cnn-lstm", "mlp"])
+def test_fast_path_matches_stepwise_predict_over_long_horizons_and_reused_workspace(
+        arch: str) -> None:
+    """S > h (windows made only of predicted rows), repeated calls reuse the workspace and the
+    carried-over interior projections, a new (N, S) reallocates: all equal predict() step by
+    step."""
+    torch.manual_seed(3)
+    pred = ForcePredictor(ModelConfig().with_arch(arch), NORM)
+    dyn = LearnedDynamics(pred)
+    hist = history(25, seed=4)
+    for n, s in ((6, 30), (6, 30), (2, 13), (9, 1)):
+        v = torch.rand(n, s) * 5.0
+        # float rounding only: measured <= 2e-5 (q up to ~40 mm, forces ~10 N); a carried-over
+        # projection from the wrong position is off by ~2e-4 with these weights
+        torch.testing.assert_close(dyn.rollout(hist, v), reference_rollout(pred, hist, v),
+                                   atol=5e-5, rtol=2e-6)
+    if arch != "mlp":
+        f = dyn.fused
+        assert f.reused and set(f.reused).isdisjoint(f.fresh)
+        assert sorted(f.reused + f.fresh) == list(range(f.length))
+
+
+def test_fused_weights_are_cached_until_the_predictor_changes() -> None:
+    torch.manual_seed(2)
+    pred = ForcePredictor(ModelConfig(), NORM)
+    dyn = LearnedDynamics(pred)
+    v = torch.rand(4, 10) * 3.0
+    dyn.rollout(history(), v)
+    cached = dyn.fused._w
+    dyn.rollout(history(), v)
+    assert dyn.fused._w is cached  # unchanged weights: not rebuilt
+    other = ForcePredictor(ModelConfig(), NORM)
+    pred.load_state_dict(other.state_dict())  # copy_ in place: _version changes
+    got = dyn.rollout(history(), v)
+    assert dyn.fused._w is not cached
+    torch.testing.assert_close(got, reference_rollout(other, history(), v), atol=2e-4, rtol=1e-4)
+    cached = dyn.fused._w
+    lin = pred.body.regressor[0]
+    lin.weight.data = lin.weight.data * 1.5  # new storage, same Parameter object
+    got = dyn.rollout(history(), v)
+    assert dyn.fused._w is not cached
+    torch.testing.assert_close(got, reference_rollout(pred, history(), v), atol=2e-4, rtol=1e-4)
+    with torch.no_grad():
+        pred.in_std.mul_(1.1)  # a normalisation buffer changed in place
+    torch.testing.assert_close(dyn.rollout(history(), v), reference_rollout(pred, history(), v),
+                               atol=2e-4, rtol=1e-4)
+
+
 def test_fused_rollout_sees_in_place_weight_updates() -> None:
     torch.manual_seed(1)
     pred = ForcePredictor(ModelConfig(), NORM)

@@ -29,6 +29,8 @@ NUMERIC_KEYS: tuple[str, ...] = ("cost", "t_cpl", "sum_fx", "sum_fz", "update_s"
 #: Outcomes from best to worst; the aggregate of several seeds is the worst one.
 OUTCOME_ORDER: tuple[str, ...] = ("done", "timeout", "aborted", "running", "safety_stop")
 ORACLE = "oracle"
+#: A peel whose peak |F| exceeds this came close to the 20 N safety stop (90 % of it), N.
+NEAR_MISS_N: float = 18.0
 
 
 # ------------------------------------------------------------------------------ atomic files
@@ -221,6 +223,18 @@ def evaluate_targets(methods: Mapping[str, Sequence[Mapping[str, Any]]],
              for m in methods}
     res["safety_stops"] = stops
     res["ol_no_safety_stop"] = stops.get(ol, 0) == 0
+    # J (Eq. 3) has no term for how close a peel came to the limit; report the peak force too
+    peaks = {m: [max(float(r.get("max_abs_fx", 0.0)), float(r.get("max_abs_fz", 0.0)))
+                 for s in runs for r in runs[s][m]] for m in methods}
+    res["peak_force_mean"] = {m: float(np.mean(v)) if v else None for m, v in peaks.items()}
+    res["near_misses"] = {m: int(sum(x > NEAR_MISS_N for x in v)) for m, v in peaks.items()}
+    res["peels_per_method"] = {m: len(v) for m, v in peaks.items()}
+    if methods.get(ORACLE) and methods.get("baseline1"):
+        o_mean = float(np.mean([r["cost"] for r in methods[ORACLE]]))
+        b_mean = float(np.mean([r["cost"] for r in methods["baseline1"]]))
+        res["oracle_mean_cost"] = o_mean
+        res["baseline1_mean_cost"] = b_mean
+        res["oracle_below_baseline1"] = bool(o_mean < b_mean)
     gaps = gaps_to_oracle(methods).get(ol)
     if gaps is not None and n >= 5:
         rel = gaps["rel"]
@@ -289,6 +303,12 @@ def _fmt(x: Any, fmt: str = ".2f") -> str:
     if isinstance(x, float):
         return format(x, fmt)
     return str(x)
+
+
+def _fmt_map(d: Mapping[str, Any] | None) -> str:
+    if not d:
+        return "n/a"
+    return ", ".join(f"{k} {_fmt(v)}" for k, v in d.items())
 
 
 def cost_table_markdown(methods: Mapping[str, Sequence[Mapping[str, Any]]]) -> str:
@@ -373,6 +393,13 @@ def report_markdown(results: Mapping[str, Any]) -> str:
         f"{_fmt(t.get('ol_within_10pct_of_oracle_by_task5'))} (gap at task 5: "
         f"{_fmt(100 * t['ol_rel_gap_task5'] if t.get('ol_rel_gap_task5') is not None else None, '+.1f')}%) |",
         f"| seeds | {t.get('n_seeds')} |",
+        "",
+        "Peak force per peel (max of |F_RX|, |F_RZ|; J has no term for it), mean over all "
+        f"peels: {_fmt_map(t.get('peak_force_mean'))}; peels above {NEAR_MISS_N:g} N "
+        f"(near misses of the 20 N stop): {t.get('near_misses')} of "
+        f"{t.get('peels_per_method')}. Mean J over all tasks: oracle "
+        f"{_fmt(t.get('oracle_mean_cost'))}, Baseline 1 {_fmt(t.get('baseline1_mean_cost'))} "
+        "(if the oracle is not below Baseline 1, a more accurate model cannot lower J here).",
         "",
         "## Timing",
         "",

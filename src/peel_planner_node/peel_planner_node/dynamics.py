@@ -61,10 +61,11 @@ class LearnedDynamics:
     preallocated [N, h + S, 4] buffer, so no tensor is concatenated in the loop.
 
     ``fast=True`` (default) runs the ``ours`` / ``cnn-lstm`` network through
-    :class:`~.fused.FusedConvAttentionLSTM`, the same arithmetic with fewer, fused torch ops
-    (one convolution for the three kernels, torch's fused LSTM, normalisation folded into the
-    force update); it reads the predictor's current weights on every rollout, so in-place
-    updates by the learner are seen. Other architectures use ``predictor.predict``.
+    :class:`~.fused.FusedConvAttentionLSTM`, the same function with fewer ops and FLOPs (one
+    matmul for the three kernels, shift-invariant window positions computed once, the LSTM on
+    preallocated buffers, normalisation folded into the force update); its rearranged weights
+    are cached and rebuilt whenever a parameter or buffer of the predictor changes (in place or
+    not), so updates by the learner are seen. Other architectures use ``predictor.predict``.
     """
 
     def __init__(self, predictor: Any, *, dt_s: float = 0.1, fast: bool = True) -> None:
