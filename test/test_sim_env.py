@@ -144,10 +144,10 @@ def test_plant_differs_from_sim():
     def mean(sets, name):
         return np.mean([p[name] for p in sets])
 
-    # a stickier, softer, more viscous pad
+    # a stickier, softer, less viscous pad
     assert mean(plant, "friction") > mean(sim, "friction") + 0.05
     assert mean(plant, "stiffness") < mean(sim, "stiffness") - 1000.0
-    assert mean(plant, "damping") > mean(sim, "damping") + 250.0
+    assert mean(plant, "damping") < mean(sim, "damping") - 250.0
     # same physical parameters: declared effects (residual vacuum, lag, drift) still differ
     p = flat_params()
     hs = const_run(p, u=2.0, n=30, source="sim", seed=1)
