@@ -85,7 +85,7 @@ def plot_tasks(tasks: list[dict[str, Any]], path: Path, title: str) -> Path:
         ax.axhline(20.0, color="red", lw=0.8, ls="--", label="20 N prewarning")
         ax.set_xlabel("t in task [s]")
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("blade velocity [mm/s]")
+    axes[0][0].set_ylabel("blade (TCP) velocity [mm/s]")
     axes[1][0].set_ylabel("contact force [N]")
     axes[0][0].legend(loc="best", fontsize=8)
     axes[1][0].legend(loc="best", fontsize=8)

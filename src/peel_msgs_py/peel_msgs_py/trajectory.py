@@ -7,8 +7,10 @@ per-sample arrays in the paper's units (see :mod:`peel_msgs_py.units`):
 field     unit   meaning at sample k (time t_k = k * dt, dt = 100 ms)
 ========  =====  =========================================================================
 ``t``     s      sample time, ``t[0] == 0`` at point C
-``q``     mm     blade position along the peel axis, measured from C
-``v``     mm/s   measured blade velocity over (t_{k-1}, t_k]: (q_k - q_{k-1}) / dt (4.3)
+``q``     mm     blade position along the peel axis from C: the tool centre point the robot
+                 controller reports (its encoders), ahead of the blade edge by the tool
+                 compliance deflection (docs/simulator.md)
+``v``     mm/s   measured blade (TCP) velocity over (t_{k-1}, t_k]: (q_k - q_{k-1}) / dt (4.3)
 ``u``     mm/s   command in force over (t_k, t_{k+1}]; so v_{k+1} ~ N(u_k, Sigma) (Eq. 2)
 ``fx``    N      horizontal contact force F_RX (peel direction)
 ``fz``    N      vertical contact force F_RZ
