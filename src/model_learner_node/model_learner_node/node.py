@@ -194,27 +194,14 @@ class LearnerNode:
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``model_learner_node`` (``--ros-args --params-file ... -p ...``)."""
-    from peel_msgs_py.runtime import ExternalShutdownException, rclpy
+    from peel_msgs_py.runtime import rclpy
+    from peel_msgs_py.runtime.entry import run_node
 
-    argv = sys.argv if args is None else args
-    node = None
-    status = 0
-    try:
-        rclpy.init(args=argv)
-        node = LearnerNode()
+    def spin(node: LearnerNode) -> None:
         while rclpy.ok():
             rclpy.spin_once(node.node, timeout_sec=0.1)
-    except PeelError as exc:
-        print(f"{NODE_NAME}: error: {exc}", file=sys.stderr)
-        status = 2
-    except (KeyboardInterrupt, ExternalShutdownException):  # SIGINT / SIGTERM: clean stop
-        status = 0
-    finally:
-        if node is not None:
-            node.close()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return status
+
+    return run_node(NODE_NAME, lambda argv: LearnerNode(), spin, args)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -22,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from peel_msgs_py.atomic import atomic_write, atomic_write_text
 from peel_msgs_py.errors import PeelError
 
 
@@ -91,10 +91,8 @@ def plot_tasks(tasks: list[dict[str, Any]], path: Path, title: str) -> Path:
     axes[1][0].legend(loc="best", fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    tmp = path.with_name("." + path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
     plt.close(fig)
-    os.replace(tmp, path)
     return path
 
 
@@ -116,10 +114,7 @@ def write_report(run_dir: Path, summary: dict[str, Any], png: Path, bag: Path,
               f"Bag: `{bag}`; per-task numbers: `summary.json`; models: `models/`; "
               "node logs: `logs/`.", ""]
     path = run_dir / "demo.md"
-    tmp = run_dir / ".demo.md.tmp"
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, "\n".join(lines))
 
 
 def main(argv: list[str] | None = None) -> int:

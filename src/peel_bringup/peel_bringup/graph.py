@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.params import (
     ParamSpec,
@@ -389,9 +390,7 @@ def run_graph(args: argparse.Namespace) -> int:
         "model_versions": sorted(set(mon.versions)), "dead_nodes": dead,
         "results": results, "status": status,
     }
-    tmp = run_dir / ".summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    os.replace(tmp, run_dir / "summary.json")
+    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     vers = ", ".join(f"v{v}" for v in summary["model_versions"]) or "none"
     print(f"peel graph: {len(results)} of {tasks} tasks finished; model versions {vers}; "
           f"run directory {run_dir}" + (f"; bag {bag}" if bag else ""), flush=True)

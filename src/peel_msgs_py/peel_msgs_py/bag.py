@@ -43,6 +43,7 @@ from mcap.records import Schema as McapSchema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from .atomic import atomic_write_text
 from .errors import PeelError
 from .topics import QosSpec
 
@@ -147,15 +148,6 @@ class _Span:
         self.start = t if self.start is None else min(self.start, t)
         self.end = t if self.end is None else max(self.end, t)
         self.count += n
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def metadata_document(
@@ -318,7 +310,7 @@ class BagWriter:
         self._file.close()
         self._mcap = None
         self._file = None
-        _atomic_write_text(self.metadata_path, _dump_metadata(doc))
+        atomic_write_text(self.metadata_path, _dump_metadata(doc))
 
     # ------------------------------------------------------------------------------ writing
     @property
@@ -466,7 +458,7 @@ class BagWriter:
         )
 
     def _write_metadata(self) -> None:
-        _atomic_write_text(self.metadata_path, _dump_metadata(self._metadata()))
+        atomic_write_text(self.metadata_path, _dump_metadata(self._metadata()))
         self._last_meta = self._now()
         self._meta_dirty = False
 
@@ -613,7 +605,7 @@ def repair_bag(path: str | os.PathLike[str]) -> RepairResult:
 
         shutil.copy2(src, orig)
     os.replace(tmp, src)
-    _atomic_write_text(bag / "metadata.yaml", _dump_metadata(doc))
+    atomic_write_text(bag / "metadata.yaml", _dump_metadata(doc))
     return RepairResult(
         bag, repaired=True, messages=span.count,
         topics={ch.topic: counts[cid] for cid, ch in sorted(channels.items())},

@@ -166,6 +166,9 @@ class PlannerNode:
                       f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}")
 
     # -- model swap --------------------------------------------------------------------------
+    def close(self) -> None:
+        self.node.destroy_node()
+
     def publish_version(self) -> None:
         msg = self.Int64()
         msg.data = int(self.version)
@@ -301,26 +304,10 @@ class PlannerNode:
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``peel_planner_node`` (``--ros-args --params-file ... -p ...``)."""
-    from peel_msgs_py.runtime import ExternalShutdownException, rclpy
+    from peel_msgs_py.runtime import rclpy
+    from peel_msgs_py.runtime.entry import run_node
 
-    argv = sys.argv if args is None else args
-    node = None
-    status = 0
-    try:
-        rclpy.init(args=argv)
-        node = PlannerNode()
-        rclpy.spin(node.node)
-    except PeelError as exc:
-        print(f"{NODE_NAME}: error: {exc}", file=sys.stderr)
-        status = 2
-    except (KeyboardInterrupt, ExternalShutdownException):  # SIGINT / SIGTERM: clean stop
-        status = 0
-    finally:
-        if node is not None:
-            node.node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return status
+    return run_node(NODE_NAME, lambda argv: PlannerNode(), lambda node: rclpy.spin(node.node), args)
 
 
 if __name__ == "__main__":

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from peel_msgs_py.atomic import atomic_write, atomic_write_text
 
 from .config import SimConfig
 from .env import PeelEnv, sample_params
@@ -82,15 +83,6 @@ def write_figure(results: list[dict], png: str | os.PathLike[str], f_prewarn: fl
     ax2.set_ylim(-0.05, 1.05)
     ax2.legend(fontsize=7)
     fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=png.parent)
-    os.close(fd)
-    fig.savefig(tmp, dpi=110)
+    atomic_write(png, lambda tmp: fig.savefig(tmp, dpi=110))
     plt.close(fig)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, png)
-    js = png.with_suffix(".json")
-    fd, tmp = tempfile.mkstemp(suffix=".json", dir=png.parent)
-    with os.fdopen(fd, "w") as f:
-        json.dump(results, f, indent=2)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, js)
+    atomic_write_text(png.with_suffix(".json"), json.dumps(results, indent=2))

@@ -21,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -32,6 +31,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from peel_msgs_py.atomic import atomic_write_bytes
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import FIELDS, Trajectory
 
@@ -98,21 +98,6 @@ class Request:
     def as_dict(self) -> dict[str, Any]:
         return {"format": FORMAT, "param_sets": self.param_sets, "per_set": self.per_set,
                 "seed": self.seed, "source": self.source, "config_hash": self.config_hash}
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        os.chmod(tmp, 0o644)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _shard_path(out: Path, split: str, set_id: int) -> Path:
@@ -182,7 +167,7 @@ def _work(args: tuple[SimConfig, int, Request, str]) -> tuple[int, str, int]:
     trajs = generate_set(cfg, set_id, req.per_set, req.seed, req.source)
     split = split_of_sets(req.param_sets, req.seed)[set_id]
     path = _shard_path(Path(out), split, set_id)
-    _atomic_write_bytes(path, shard_bytes(trajs, set_id, req))
+    atomic_write_bytes(path, shard_bytes(trajs, set_id, req))
     return set_id, split, sum(len(t) for t in trajs)
 
 
@@ -206,7 +191,7 @@ def prepare_dir(out: Path, req: Request) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for s in SPLITS:
         (out / s).mkdir(exist_ok=True)
-    _atomic_write_bytes(out / MARKER, json.dumps(req.as_dict(), sort_keys=True).encode())
+    atomic_write_bytes(out / MARKER, json.dumps(req.as_dict(), sort_keys=True).encode())
 
 
 def generate_dataset(cfg: SimConfig, out: str | os.PathLike[str], *, param_sets: int,
@@ -254,7 +239,7 @@ def generate_dataset(cfg: SimConfig, out: str | os.PathLike[str], *, param_sets:
                                             for s in SPLITS},
                 "set_split": splits, "units": UNITS, "code_version": code_version(),
                 "fields": list(FIELDS)}
-    _atomic_write_bytes(out / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True).encode())
+    atomic_write_bytes(out / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True).encode())
     return manifest
 
 

@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from peel_msgs_py.errors import PeelError
 from peel_msgs_py.params import ParamSpec, validate
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
@@ -290,25 +289,9 @@ class SimNode:
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``peel_sim_node`` (``--ros-args --params-file ... -p ...``)."""
-    from peel_msgs_py.runtime import ExternalShutdownException, rclpy
+    from peel_msgs_py.runtime.entry import run_node
 
-    argv = sys.argv if args is None else args
-    node = None
-    try:
-        rclpy.init(args=argv)
-        node = SimNode(argv)
-        status = node.run()
-    except PeelError as exc:
-        print(f"{NODE_NAME}: error: {exc}", file=sys.stderr)
-        status = 2
-    except (KeyboardInterrupt, ExternalShutdownException):  # SIGINT / SIGTERM: clean stop
-        status = 0
-    finally:
-        if node is not None:
-            node.close()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return status
+    return run_node(NODE_NAME, SimNode, lambda node: node.run(), args)
 
 
 if __name__ == "__main__":
