@@ -48,7 +48,7 @@ model_learner_node:
     node:
       init_model: {{init}}
     maml:
-      meta_steps: 1
+      meta_steps: {{meta_steps}}
       support_slices: 4
       query_slices: 4
       eval_slices: 4
@@ -77,17 +77,18 @@ def initial_model(tmp: Path) -> Path:
     return save_checkpoint(tmp / "init.safetensors", ForcePredictor(ModelConfig()))
 
 
-def write_override(tmp: Path, wait_model_s: float) -> Path:
+def write_override(tmp: Path, wait_model_s: float, meta_steps: int = 1) -> Path:
     path = tmp / "override.yaml"
     path.write_text(OVERRIDE.replace("{wait_model_s}", str(wait_model_s))
+                    .replace("{meta_steps}", str(meta_steps))
                     .replace("{init}", str(initial_model(tmp))))
     return path
 
 
 def graph_cmd(tmp: Path, *extra: str, tasks: int = 3, wait_model_s: float = 120.0,
-              plant: str = "sim") -> list[str]:
+              plant: str = "sim", meta_steps: int = 1) -> list[str]:
     return [sys.executable, "-m", "peel_bringup.cli", "graph", "--plant", plant, "--tasks",
-            str(tasks), "--params", str(write_override(tmp, wait_model_s)),
+            str(tasks), "--params", str(write_override(tmp, wait_model_s, meta_steps)),
             "--out", str(tmp / "run"), "--seed", "3", *extra]
 
 
@@ -227,8 +228,10 @@ def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path) -> N
 
 def test_learner_killed_planner_keeps_last_good_model(tmp_path: Path) -> None:
     bag = tmp_path / "bag"
+    # a slow learner (many meta steps per update) leaves seconds between its first swap and
+    # its second, so the kill below lands mid-run whatever the machine's load
     proc = subprocess.Popen(graph_cmd(tmp_path, "--record", str(bag), "--keep-going",
-                                      wait_model_s=15.0),
+                                      wait_model_s=8.0, meta_steps=150),
                             env=graph_env(1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:

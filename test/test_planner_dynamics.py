@@ -66,7 +66,9 @@ def test_fast_path_matches_stepwise_predict_over_long_horizons_and_reused_worksp
     pred = ForcePredictor(ModelConfig().with_arch(arch), NORM)
     dyn = LearnedDynamics(pred)
     hist = history(25, seed=4)
-    for n, s in ((6, 30), (6, 30), (2, 13), (9, 1)):
+    # S = 6, 7, 8 around the wavefront depth D = 7 (ours) / 8 (cnn-lstm): the last windows
+    # are cut from the batched step
+    for n, s in ((6, 30), (6, 30), (2, 13), (9, 1), (4, 6), (4, 7), (3, 8)):
         v = torch.rand(n, s) * 5.0
         # float rounding only: measured <= 2e-5 (q up to ~40 mm, forces ~10 N); a carried-over
         # projection from the wrong position is off by ~2e-4 with these weights
@@ -76,6 +78,28 @@ def test_fast_path_matches_stepwise_predict_over_long_horizons_and_reused_worksp
         f = dyn.fused
         assert f.reused and set(f.reused).isdisjoint(f.fresh)
         assert sorted(f.reused + f.fresh) == list(range(f.length))
+        assert f.depth == f.h + f.pad - f.width + 1 and len(f.wave) == 2 * f.pad + 1
+
+
+def test_fused_variants_without_padding_and_with_large_attention_logits() -> None:
+    """Paddings 0 (no edge positions: h_L comes from the batched step) and attention weights
+    large enough that the softmax needs its max-shift: both still equal predict()."""
+    torch.manual_seed(5)
+    hist = history(25, seed=6)
+    v = torch.rand(5, 20) * 4.0
+    pred = ForcePredictor(ModelConfig(kernels=(3, 3, 3), paddings=(0, 0, 0)), NORM)
+    dyn = LearnedDynamics(pred)
+    assert dyn.fused is not None and dyn.fused.pad == 0
+    torch.testing.assert_close(dyn.rollout(hist, v), reference_rollout(pred, hist, v),
+                               atol=5e-5, rtol=2e-6)
+    pred = ForcePredictor(ModelConfig(), NORM)
+    with torch.no_grad():
+        pred.body.attention.mlp[2].weight.mul_(40.0)
+    dyn = LearnedDynamics(pred)
+    dyn.rollout(hist, v)
+    assert dyn.fused._w["att_shift"]
+    torch.testing.assert_close(dyn.rollout(hist, v), reference_rollout(pred, hist, v),
+                               atol=5e-5, rtol=2e-6)
 
 
 def test_fused_weights_are_cached_until_the_predictor_changes() -> None:

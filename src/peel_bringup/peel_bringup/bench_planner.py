@@ -213,6 +213,105 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "planner_config": base.as_dict(), "cases": out_cases, "goals": goals}
 
 
+#: --cost-study variants: peel's planner with one setting changed towards pytorch_mppi's
+STUDY_VARIANTS: dict[str, dict[str, Any]] = {
+    "peel": {},
+    "peel_sigma_fixed_1": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0},
+    "peel_fill_init": {"mppi.shift_fill": "init"},
+    "peel_sigma_fixed_1_fill_init": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0,
+                                     "mppi.shift_fill": "init"},
+    # without Eq. 38's control term: separates the noise level from the prior's strength
+    "peel_no_control_cost": {"mppi.control_cost_scale": 0.0},
+    "peel_sigma_fixed_1_no_control_cost": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0,
+                                           "mppi.control_cost_scale": 0.0},
+}
+
+
+def cost_study(args: argparse.Namespace) -> dict[str, Any]:
+    """Episode cost J of peel variants and pytorch_mppi over tasks x planner seeds at one (N, H).
+
+    Each variant changes one planner setting towards what pytorch_mppi does (fixed Sigma = sigma0
+    instead of the re-estimate with its floor; shift fill u_init instead of the last entry);
+    every (task, seed) pair is run by every variant, so differences are paired. Reports per
+    variant the mean J, its standard error over the task x seed runs, the paired mean difference
+    to pytorch_mppi with its standard error, t_cpl, outcomes and the mean Sigma in use.
+    """
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.env import PeelEnv
+    from peel_sim_node.episode import run_episode
+
+    torch.set_num_threads(args.threads)
+    pred, model_info = load_model()
+    n, h = args.study_n, args.study_h
+    base = load_planner_config().replace(**{"mppi.n_samples": n, "mppi.horizon": h})
+    cost = Cost(base.cost)
+    tasks, pseeds = list(range(args.tasks)), list(range(args.seeds))
+    names = [*(args.variants.split(",") if args.variants else STUDY_VARIANTS), "pytorch_mppi"]
+    for name in names[:-1]:
+        if name not in STUDY_VARIANTS:
+            raise PeelError(f"--variants: unknown variant {name!r} (one of "
+                            f"{', '.join(STUDY_VARIANTS)})")
+    res: dict[str, dict[str, list]] = {k: {"J": [], "t": [], "out": [], "sigma": []}
+                                       for k in names}
+    env = PeelEnv(load_sim_config(), seed=0)
+    bar = tqdm(total=len(names) * len(tasks) * len(pseeds), desc="cost study",
+               disable=not args.progress, file=sys.stderr)
+    try:
+        for name in names:
+            for ps in pseeds:
+                if name == "pytorch_mppi":
+                    policy: Any = TorchMppiPolicy(pred, cost, base, seed=ps)
+                else:
+                    cfg = base.replace(**{**STUDY_VARIANTS[name], "mppi.seed": ps})
+                    policy = Planner(LearnedDynamics(pred), cost, cfg)
+                for task in tasks:
+                    policy.reset()
+                    sigmas: list[float] = []
+                    if isinstance(policy, Planner):
+                        inner = policy
+
+                        def pol(hist: Trajectory, inner: Planner = inner,
+                                sigmas: list[float] = sigmas) -> float:
+                            u = inner.plan(hist)
+                            if inner.stop is None:
+                                sigmas.append(inner.sigma)
+                            return u
+                    else:
+                        pol = policy
+                    traj = run_episode(env, pol, seed=task)
+                    r = res[name]
+                    r["J"].append(float(episode_cost_terms(traj, cost)["total"]))
+                    r["t"].append(float(traj.t_cpl))
+                    r["out"].append(traj.outcome)
+                    r["sigma"].append(float(np.mean(sigmas)) if sigmas else float("nan"))
+                    bar.update(1)
+    finally:
+        bar.close()
+        env.close()
+    ref = np.asarray(res["pytorch_mppi"]["J"])
+    k = len(ref)
+    variants = []
+    for name in names:
+        j = np.asarray(res[name]["J"])
+        d = j - ref
+        variants.append({
+            "variant": name, "overrides": STUDY_VARIANTS.get(name, {}),
+            "episode_cost": round(float(j.mean()), 4),
+            "sem": round(float(j.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
+            "diff_vs_pytorch_mppi": round(float(d.mean()), 4),
+            "diff_sem": round(float(d.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
+            "t_cpl_s": round(float(np.mean(res[name]["t"])), 3),
+            "done": res[name]["out"].count("done"),
+            "safety_stop": res[name]["out"].count("safety_stop"),
+            "mean_sigma": (round(float(np.nanmean(res[name]["sigma"])), 4)
+                           if name != "pytorch_mppi" else base.mppi.sigma0),
+            "episode_costs": [round(x, 4) for x in res[name]["J"]],
+        })
+    return {"benchmark": "planner_cost_study", "model": model_info, "n": n, "h": h,
+            "tasks": tasks, "planner_seeds": pseeds, "runs_per_variant": k,
+            "variants": variants}
+
+
 def main(argv: list[str] | None = None) -> int:
     """``peel bench planner [--json] [--quick] [--tasks N] [--repeats N] [--threads N]``."""
     ap = argparse.ArgumentParser(prog="peel bench planner", description=__doc__.split("\n")[0])
@@ -224,15 +323,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1,
                     help="torch CPU threads (1: on a shared 2-core machine 2 threads contend)")
     ap.add_argument("--progress", action="store_true", help="tqdm progress bar on stderr")
+    ap.add_argument("--cost-study", action="store_true",
+                    help="instead of the benchmark: J of peel variants vs pytorch_mppi over "
+                         "--tasks x --seeds at (--study-n, --study-h)")
+    ap.add_argument("--seeds", type=int, default=3, help="planner noise seeds (--cost-study)")
+    ap.add_argument("--study-n", type=int, default=50, help="N for --cost-study")
+    ap.add_argument("--study-h", type=int, default=5, help="H for --cost-study")
+    ap.add_argument("--variants", default="",
+                    help="comma-separated --cost-study variants (default: all)")
     args = ap.parse_args(argv)
     if args.tasks is None:
         args.tasks = 2 if args.quick else 10
     if args.repeats is None:
         args.repeats = 20 if args.quick else 100
-    for name in ("tasks", "repeats", "threads"):
+    for name in ("tasks", "repeats", "threads", "seeds", "study_n", "study_h"):
         if getattr(args, name) < 1:
-            raise PeelError(f"--{name} must be at least 1")
-    print(json.dumps(run(args), indent=2))
+            raise PeelError(f"--{name.replace('_', '-')} must be at least 1")
+    print(json.dumps(cost_study(args) if args.cost_study else run(args), indent=2))
     return 0
 
 

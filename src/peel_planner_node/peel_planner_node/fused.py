@@ -16,20 +16,31 @@ fewer operations, fewer FLOPs and no per-step allocation of the large intermedia
   kernel of width ``max(k_i + P - p_i)``, padding ``P = max(p_i)``, each kernel at offset
   ``P - p_i`` inside a zero kernel (exactly the same sums); over an h-row window that
   convolution is one dense (Toeplitz) matrix [h*4, positions*channels].
-* **Shift-invariant positions are computed once.** The window slides one row per model step.
-  A position j whose receptive field lies inside the window (``P <= j`` and
-  ``j - P + width <= h``, "interior") gives the same conv output, attention weights and LSTM
-  input projection ``W_x x_j + b`` at the next step as position j + 1 did at this one; only the
-  zero-padded edge positions and the newest interior position are computed anew (5 of 9 for
-  ``ours``, 3 of 9 for ``cnn-lstm``). The projections are stored per absolute row in one
-  time-major buffer, which the recurrence reads as contiguous [N, 4 hidden] slices.
+* **Wavefront over consecutive windows.** The window slides one row per model step. A position
+  j whose receptive field lies inside the window (``P <= j <= J = h + P - W``, "interior") sees
+  the same rows as position j - 1 of the next window, and window k + 1's LSTM does not need
+  window k's prediction until its position J. So at step k the D = J + 1 windows k..k+J each
+  advance one position (window k + d at position J - d), as **one batched LSTM step** of
+  D x N rows: for d <= J - P that position is the interior position of absolute index k + J,
+  one projection ``W_x x + b`` shared by all of them (added by broadcasting); for the P
+  newest windows it is a top-edge (zero-padded) position, computed for that window. Window k
+  then runs its P bottom-edge positions alone and goes to the regressor. Per step 2P + 1
+  positions are projected (5 of 9 for ``ours``, 3 of 9 for ``cnn-lstm``) and the LSTM takes
+  P + 1 sequential cell updates instead of L = 9 (3 instead of 9 for ``ours``).
+* **Measured-only prologue, once for all samples.** Before step 0, windows 0..J have already
+  processed their positions that see measured rows only; those are identical for all N
+  samples, so they run with batch 1 (windows batched, one anti-diagonal per position) and the
+  LSTM states are broadcast to the N samples.
 * **LSTM by hand, gate rows reordered** (this model's f, i, g, o -> i, f, o, g: one sigmoid over
   the first three blocks), every intermediate written into preallocated buffers (``out=``).
   torch's fused ``torch.lstm`` / ``nn.LSTM`` was measured slower here (docs/planner.md): it
   recomputes the input projection of all positions and allocates per call.
-* **Regressor input as one buffer** [h_L, v_{k+1}, 1] so the first FC layer (with its bias) is
-  one matmul; the rollout buffer is kept in normalised units, so the force update of the
-  increment head ``F_{k+1} = F_k + out_mean + out_std * dF`` is one ``addcmul``.
+* **Regressor as bias-free matmuls**: the first FC layer reads [h_L, v_{k+1}, 1] and every later
+  layer [y, 1] (a ones column carries the next bias; ``addmm`` would first copy the bias into
+  its output); the last layer carries the increment head's scale and shift (in units of the
+  normalised force), so ``F_{k+1} = F_k + y`` is one ``add``. ReLU is ``relu_`` (``clamp_``
+  converted its scalar bound on every call). The scale-attention softmax skips its max-shift
+  when the logits are provably small (``|a| <= sum |W_2| + |b_2| <= 60``, tanh is bounded).
 * **Workspace reused** between calls of the same (N, S): the first call allocates, later calls
   write into the same memory (a fresh multi-megabyte tensor per step cost more in page faults
   and bias copies than its matmul at N = 1000).
@@ -69,7 +80,11 @@ class FusedConvAttentionLSTM:
             if not isinstance(layer, want):
                 return False
         convs = list(body.conv.convs)
-        return not any(c.stride != (1,) or c.dilation != (1,) or c.groups != 1 for c in convs)
+        if any(c.stride != (1,) or c.dilation != (1,) or c.groups != 1 for c in convs):
+            return False
+        pad = max(int(c.padding[0]) for c in convs)
+        width = max(int(c.kernel_size[0]) + pad - int(c.padding[0]) for c in convs)
+        return width <= int(predictor.h)  # at least one interior position (the wavefront)
 
     def __init__(self, predictor: Any) -> None:
         self.predictor = predictor
@@ -82,21 +97,33 @@ class FusedConvAttentionLSTM:
         self.width = max(int(c.kernel_size[0]) + self.pad - int(c.padding[0]) for c in convs)
         self.length = self.h + 2 * self.pad - self.width + 1  # L positions per window
         self.hidden = int(body.lstm.hidden)
-        interior = [j for j in range(self.length)
-                    if j >= self.pad and j - self.pad + self.width <= self.h]
-        # positions whose projection is carried over from the previous step (j + 1 interior too)
-        self.reused = [j for j in interior if j + 1 in interior]
-        self.fresh = [j for j in range(self.length) if j not in self.reused]
+        pad = self.pad
+        # last interior position J; D = J + 1 windows are in flight at each model step
+        self.last_interior = self.h + pad - self.width
+        self.depth = self.last_interior + 1
+        J = self.last_interior
+        # positions computed anew per step (window-relative), the others were done earlier
+        self.fresh = [*range(pad), J, *range(J + 1, self.length)]
+        self.reused = [j for j in range(self.length) if j not in self.fresh]
+        # (window offset, position) computed at step k: top edges of windows k + J - j
+        # (ordered by window), the interior position J and the bottom edges of window k
+        self.wave = [(J - j, j) for j in reversed(range(pad))] + [(0, j) for j in
+                                                                  range(J, self.length)]
         self._key: tuple | None = None
+        self._slots: list[tuple[dict, str]] | None = None
         self._w: dict[str, Any] = {}
         self._ws_key: tuple | None = None
         self._ws: dict[str, torch.Tensor] = {}
 
     # ------------------------------------------------------------------ weights
     def _version(self) -> tuple:
-        p = self.predictor
+        # the modules' parameter/buffer dicts are looked up once (walking the module tree
+        # cost ~0.3 ms per plan); reading the dicts each time still sees a replaced tensor
+        if self._slots is None:
+            self._slots = [(d, name) for m in self.predictor.modules()
+                           for d in (m._parameters, m._buffers) for name in d]
         return tuple((t.data_ptr(), t._version, t.dtype, t.device)
-                     for t in (*p.parameters(), *p.buffers()))
+                     for d, name in self._slots if (t := d[name]) is not None)
 
     def _weights(self) -> dict[str, Any]:
         """The predictor's current weights, rearranged for the fused ops (cached, see above)."""
@@ -140,6 +167,8 @@ class FusedConvAttentionLSTM:
         mlp = list(body.attention.mlp)
         reg = [m for m in body.regressor if isinstance(m, nn.Linear)]
         w1 = reg[0].weight.detach()
+        shift = (p.out_mean / p.in_std[2:4]).detach()
+        scale = (p.out_std / p.in_std[2:4]).detach()
         # first FC layer over [h_L, v_{k+1}, 1]
         w1_aug = torch.cat([w1.t(), reg[0].bias.detach().unsqueeze(0)], dim=0).contiguous()
 
@@ -147,9 +176,18 @@ class FusedConvAttentionLSTM:
             return (toe[:, js, :].reshape(h * n_in, len(js) * c_all).contiguous(),
                     bc.repeat(len(js)))
 
-        fresh, everything = cols(self.fresh), cols(list(range(length)))
+        # per step: the positions of the wavefront (see rollout), each (window offset o,
+        # position j) read from window k's rows: tap t sees row o + j - P + t of window k
+        toe_w = torch.zeros((h, n_in, len(self.wave), c_all), dtype=ref.dtype, device=ref.device)
+        for col, (o, j) in enumerate(self.wave):
+            for tap in range(width):
+                r = j - pad + tap
+                if 0 <= r < h:
+                    toe_w[o + r, :, col, :] = wc[:, :, tap].t()
+        everything = cols(list(range(length)))
         return {
-            "toe_fresh": fresh[0], "btoe_fresh": fresh[1],
+            "toe_wave": toe_w.reshape(h * n_in, len(self.wave) * c_all).contiguous(),
+            "btoe_wave": bc.repeat(len(self.wave)),
             "toe_all": everything[0], "btoe_all": everything[1],
             "wx_t": ifog(lstm.w_x.weight.detach()).t().contiguous(),
             "bx": ifog(lstm.w_x.bias.detach()).contiguous(),
@@ -157,10 +195,17 @@ class FusedConvAttentionLSTM:
             "a1w_t": mlp[0].weight.detach().t().contiguous(), "a1b": mlp[0].bias.detach(),
             "a2w_t": mlp[2].weight.detach().t().contiguous(), "a2b": mlp[2].bias.detach(),
             "w1_aug": w1_aug,
-            "mid": [(m.weight.detach().t().contiguous(), m.bias.detach()) for m in reg[1:]],
+            # later FC layers as one mm each on [y, 1] (bias as the last weight row); the last
+            # one also carries the increment head's scale and shift (F_{k+1} = F_k + its output)
+            "mid": [torch.cat([m.weight.detach().t(), m.bias.detach().unsqueeze(0)]).contiguous()
+                    for m in reg[1:-1]]
+            + [torch.cat([reg[-1].weight.detach().t() * scale,
+                          (reg[-1].bias.detach() * scale + shift).unsqueeze(0)]).contiguous()],
+            # |attention logit| <= sum |W_2| + |b_2| (tanh is bounded): exp() cannot overflow
+            # below ~88, so the max-shift of the softmax is skipped when the bound is small
+            "att_shift": bool((mlp[2].weight.detach().abs().sum(dim=1)
+                               + mlp[2].bias.detach().abs()).max() > 60.0),
             "in_mean": p.in_mean.detach().clone(), "in_std": p.in_std.detach().clone(),
-            "shift": (p.out_mean / p.in_std[2:4]).detach().clone(),
-            "scale": (p.out_std / p.in_std[2:4]).detach().clone(),
         }
 
     # ------------------------------------------------------------------ workspace
@@ -170,126 +215,195 @@ class FusedConvAttentionLSTM:
         key = (n, s, dtype, dev)
         if key == self._ws_key:
             return self._ws
-        h, length, hid = self.h, self.length, self.hidden
-        c_all = self.channels * self.n_scales
+        h, length, hid, pad = self.h, self.length, self.hidden, self.pad
+        depth, c_all, nw = self.depth, self.channels * self.n_scales, len(self.wave)
         w = self._w
+        a_hid = w["a1w_t"].shape[1]
 
         def e(*shape: int) -> torch.Tensor:
             return torch.empty(shape, dtype=dtype, device=dev)
 
         bufn = e(n, h + s, 4)
-        zx = e(s + length, n, 4 * hid)  # W_x x + b per absolute position, time-major
         row = (h + s) * 4
         flat = bufn.view(n, row)
+        # per-step projections of the wavefront positions, position-major [nw, N, ...]
+        conv, zt, zf = e(n, nw * c_all), e(nw, n, c_all), e(nw * n, 4 * hid)
+        st = {"conv": conv, "conv_t": conv.view(n, nw, c_all).transpose(0, 1), "zt": zt,
+              "zz": zt.view(nw * n, c_all), "zs": zt.view(nw * n, self.n_scales, self.channels),
+              "att": e(nw * n, a_hid), "zout": zf}
+        # prologue: windows 0..D-1 over all positions, batch 1 each, window-major
+        pro = torch.zeros((depth - 1 + h, 4), dtype=dtype, device=dev)
+        pconv, zp = e(depth, length * c_all), e(depth * length, 4 * hid)
+        pst = {"conv": pconv, "zz": pconv.view(depth * length, c_all),
+               "zs": pconv.view(depth * length, self.n_scales, self.channels),
+               "att": e(depth * length, a_hid), "zout": zp}
+        hp, cp, gp = e(depth, hid), e(depth, hid), e(depth, 4 * hid)
+        sgp, tgp, tmpp = e(depth, 3 * hid), e(depth, hid), e(depth, hid)
+        prologue = []
+        for i in range(self.last_interior):  # windows 0..i at positions i - d: abs. position i
+            a = i + 1
+            prologue.append((zp.as_strided((a, 4 * hid), ((length - 1) * 4 * hid, 1),
+                                           i * 4 * hid),
+                             hp[:a], cp[:a], gp[:a], gp[:a, :3 * hid], gp[:a, 3 * hid:],
+                             sgp[:a], sgp[:a, :hid], sgp[:a, hid:2 * hid], sgp[:a, 2 * hid:],
+                             tgp[:a], tmpp[:a]))
+        rows = max(s, depth)
+        hs, cs = e(rows, n, hid), e(rows, n, hid)
+        g, sg, tg, tmp = e(depth * n, 4 * hid), e(depth * n, 3 * hid), e(depth * n, hid), \
+            e(depth * n, hid)
+        # regressor activations [y, 1]: the ones column carries the next layer's bias
+        ys = [e(n, w["w1_aug"].shape[1] + 1)] + [e(n, wl.shape[1] + 1) for wl in w["mid"][:-1]]
+        for y in ys:
+            y[:, -1] = 1.0
+        yf = e(n, 2)
+        hreg = e(n, hid + 2)
+        hreg[:, hid + 1] = 1.0
+        h_t = hreg[:, :hid]
+        wh_t = w["wh_t"]
+        z_int = zf[pad * n:(pad + 1) * n]
+        z_bot = [zf[(pad + p) * n:(pad + p + 1) * n] for p in range(1, pad + 1)]
 
-        def stage(npos: int) -> dict[str, torch.Tensor]:
-            conv, zt = e(n, npos * c_all), e(npos, n, c_all)
-            return {"conv": conv, "conv_t": conv.view(n, npos, c_all).transpose(0, 1),
-                    "zt": zt, "zz": zt.view(npos * n, c_all),
-                    "zs": zt.view(npos * n, self.n_scales, self.channels),
-                    "att": e(npos * n, w["a1w_t"].shape[1])}
-
-        fresh = self.fresh
-        groups: list[tuple[int, int]] = []  # runs of consecutive fresh positions
-        for i, j in enumerate(fresh):
-            if groups and fresh[groups[-1][0]] + groups[-1][1] == j:
-                groups[-1] = (groups[-1][0], groups[-1][1] + 1)
-            else:
-                groups.append((i, 1))
-        st_all, st_fresh = stage(length), stage(len(fresh))
-
-        def outs(st: dict, k: int, runs: list[tuple[int, int, int]]) -> list:
-            return [(st["zt"][i:i + c].view(c * n, c_all),
-                     zx[k + j:k + j + c].view(c * n, 4 * hid)) for i, c, j in runs]
+        def cell(c: int, k0: int, out_h: torch.Tensor | None = None) -> dict:
+            """Views of one LSTM cell update over windows k0..k0+c-1 (rows of hs, cs)."""
+            m = c * n
+            return {"h": hs[k0:k0 + c].view(m, hid), "c": cs[k0:k0 + c].view(m, hid),
+                    "g": g[:m], "g_ifo": g[:m, :3 * hid], "g_g": g[:m, 3 * hid:], "sg": sg[:m],
+                    "s_i": sg[:m, :hid], "s_f": sg[:m, hid:2 * hid], "s_o": sg[:m, 2 * hid:],
+                    "tg": tg[:m], "tmp": tmp[:m], "wh_t": wh_t,
+                    "h_out": hs[k0:k0 + c].view(m, hid) if out_h is None else out_h}
 
         steps = []
         for k in range(s):
-            if k == 0:
-                st, runs = st_all, [(0, length, 0)]
-                toe, btoe = w["toe_all"], w["btoe_all"]
-            else:
-                st, runs = st_fresh, [(i, c, fresh[i]) for i, c in groups]
-                toe, btoe = w["toe_fresh"], w["btoe_fresh"]
-            steps.append({"x": flat.as_strided((n, h * 4), (row, 1), k * 4), "st": st,
-                          "toe": toe, "btoe": btoe, "outs": outs(st, k, runs),
-                          "z": [zx[k + t] for t in range(length)],
+            c = min(depth, s - k)  # windows k..k+c-1 in flight (later ones are not needed)
+            nint = min(c, depth - pad)
+            nedge = c - nint
+            blk = cell(c, k)
+            blk.update({
+                "g_int": g[:nint * n].view(nint, n, 4 * hid), "z_int": z_int,
+                "edge": (zf[:nedge * n], g[nint * n:c * n]) if nedge else None})
+            bottom = [(z_bot[p], cell(1, k, h_t if p == pad - 1 else None))
+                      for p in range(pad)]
+            steps.append({"x": flat.as_strided((n, h * 4), (row, 1), k * 4), "blk": blk,
+                          "bottom": bottom, "h_last": hs[k] if pad == 0 else None,
                           "f_prev": bufn[:, h + k - 1, 2:4], "f_next": bufn[:, h + k, 2:4]})
-        g, sg, hreg = e(n, 4 * hid), e(n, 3 * hid), e(n, hid + 2)
-        hreg[:, hid + 1] = 1.0
         ws = {
-            "bufn": bufn, "steps": steps, "g": g, "g_ifo": g[:, :3 * hid], "g_g": g[:, 3 * hid:],
-            "sg": sg, "s_i": sg[:, :hid], "s_f": sg[:, hid:2 * hid], "s_o": sg[:, 2 * hid:],
-            "tg": e(n, hid), "cell": e(n, hid), "tmp": e(n, hid),
-            "hreg": hreg, "h_t": hreg[:, :hid], "h_v": hreg[:, hid],
-            "y": [e(n, w["w1_aug"].shape[1])] + [e(n, wl.shape[1]) for wl, _ in w["mid"]],
+            "bufn": bufn, "steps": steps, "st": st, "pro": pro,
+            "xpro": pro.view(-1).as_strided((depth, h * 4), (4, 1)), "pst": pst,
+            "prologue": prologue, "hp": hp, "cp": cp, "hs": hs, "cs": cs,
+            "hs_pro": hs[:depth], "cs_pro": cs[:depth],
+            "hs_zero": hs[depth:], "cs_zero": cs[depth:],
+            "hp_b": hp.unsqueeze(1).expand(depth, n, hid),
+            "cp_b": cp.unsqueeze(1).expand(depth, n, hid),
+            "hreg": hreg, "h_t": h_t, "h_v": hreg[:, hid],
+            "y": ys, "y_out": [y[:, :-1] for y in ys[:]] + [yf], "yf": yf,
         }
         self._ws, self._ws_key = ws, key
         return ws
 
     # ------------------------------------------------------------------ rollout
-    def _project(self, step: dict) -> None:
-        """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of this step's new positions."""
-        w, st = self._w, step["st"]
-        conv, zz = st["conv"], st["zz"]
-        torch.addmm(step["btoe"], step["x"], step["toe"], out=conv)
-        conv.clamp_(min=0.0)  # ReLU
-        st["zt"].copy_(st["conv_t"])  # position-major
+    def _project(self, x: torch.Tensor, toe: torch.Tensor, btoe: torch.Tensor,
+                 st: dict) -> None:
+        """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of the positions in ``toe``."""
+        w = self._w
+        conv = st["conv"]
+        torch.addmm(btoe, x, toe, out=conv)
+        conv.relu_()
+        if "zt" in st:
+            st["zt"].copy_(st["conv_t"])  # position-major
         att = st["att"]
-        torch.addmm(w["a1b"], zz, w["a1w_t"], out=att)
+        torch.addmm(w["a1b"], st["zz"], w["a1w_t"], out=att)
         att.tanh_()
         a = torch.addmm(w["a2b"], att, w["a2w_t"])  # [P*N, n_scales]
         # softmax over the scales (Eq. 9); torch.softmax is slow for a last dim of 3
-        e = torch.exp(a - a.amax(dim=-1, keepdim=True))
+        e = torch.exp(a - a.amax(dim=-1, keepdim=True)) if w["att_shift"] else a.exp_()
         st["zs"].mul_((e / e.sum(dim=-1, keepdim=True)).unsqueeze(-1))
-        for src, out in step["outs"]:
-            torch.addmm(w["bx"], src, w["wx_t"], out=out)
+        torch.addmm(w["bx"], st["zz"], w["wx_t"], out=st["zout"])
+
+    @staticmethod
+    def _cell(z: torch.Tensor | None, c: dict) -> None:
+        """One LSTM step (Eq. 11-16), gates i, f, o | g, on the views ``c``; ``z`` = the input
+        projection (None: the gate pre-activations are already in c["g"])."""
+        wh_t = c["wh_t"]
+        if z is not None:
+            torch.addmm(z, c["h"], wh_t, out=c["g"])
+        torch.sigmoid(c["g_ifo"], out=c["sg"])
+        torch.tanh(c["g_g"], out=c["tg"])
+        c["c"].mul_(c["s_f"]).addcmul_(c["s_i"], c["tg"])
+        torch.tanh(c["c"], out=c["tmp"])
+        torch.mul(c["s_o"], c["tmp"], out=c["h_out"])
 
     def rollout(self, window: np.ndarray, v: torch.Tensor, dt_s: float) -> torch.Tensor:
-        """(q, fx, fz) [N, S, 3] from the last h rows ``window`` [h, 4] for ``v`` [N, S]."""
+        """(q, fx, fz) [N, S, 3] from the last h rows ``window`` [h, 4] for ``v`` [N, S].
+
+        Wavefront schedule (module docstring): window k (rows k..k+h-1 of the rollout buffer)
+        is the model's input at step k. At step k the positions whose rows are all known are
+        advanced together: window k + d at position J - d for d = 0..J (one batched LSTM step of
+        D = J + 1 windows; for d <= J - P that position is the interior one of absolute index
+        k + J, the same projection for all of them), then window k's P bottom-edge positions,
+        then the regressor. Windows 0..J start from a prologue over the measured rows only,
+        computed once for all N samples and broadcast.
+        """
         w = self._weights()
         h = self.h
         n, s = v.shape
         dtype, dev = w["in_mean"].dtype, w["in_mean"].device
         ws = self._workspace(n, s, dtype, dev)
+        wh_t = w["wh_t"]
         in_mean, in_std = w["in_mean"], w["in_std"]
         v = v.to(dtype=dtype, device=dev)
         base = torch.as_tensor(window, dtype=dtype, device=dev)
+        basen = (base - in_mean) / in_std
         bufn = ws["bufn"]
-        bufn[:, :h] = (base - in_mean) / in_std
+        bufn[:, :h] = basen
         q = base[-1, 0] + dt_s * torch.cumsum(v, dim=1)
         bufn[:, h:, 0] = (q - in_mean[0]) / in_std[0]
         vn = (v - in_mean[1]) / in_std[1]
         bufn[:, h:, 1] = vn
+        # prologue: windows 0..J over their positions that see measured rows only (batch 1)
+        ws["pro"][:h] = basen
+        self._project(ws["xpro"], w["toe_all"], w["btoe_all"], ws["pst"])
+        hp, cp = ws["hp"], ws["cp"]
+        hp.zero_()
+        cp.zero_()
         sig, tanh, mul, addmm = torch.sigmoid, torch.tanh, torch.mul, torch.addmm
-        g, g_ifo, g_g = ws["g"], ws["g_ifo"], ws["g_g"]
-        sg, s_i, s_f, s_o = ws["sg"], ws["s_i"], ws["s_f"], ws["s_o"]
-        tg, cell, tmp, h_t, h_v, hreg = (ws["tg"], ws["cell"], ws["tmp"], ws["h_t"], ws["h_v"],
-                                         ws["hreg"])
-        ys, mid, wh_t, w1_aug = ws["y"], w["mid"], w["wh_t"], w["w1_aug"]
-        hid3 = 3 * self.hidden
-        shift, scale = w["shift"], w["scale"]
+        for z, hh, cc, g, g_ifo, g_g, sg, s_i, s_f, s_o, tg, tmp in ws["prologue"]:
+            addmm(z, hh, wh_t, out=g)
+            sig(g_ifo, out=sg)
+            tanh(g_g, out=tg)
+            cc.mul_(s_f).addcmul_(s_i, tg)
+            tanh(cc, out=tmp)
+            mul(s_o, tmp, out=hh)
+        ws["hs_pro"].copy_(ws["hp_b"])
+        ws["cs_pro"].copy_(ws["cp_b"])
+        ws["hs_zero"].zero_()  # windows D.. start from h_0 = c_0 = 0
+        ws["cs_zero"].zero_()
+        h_t, h_v, hreg, ys, y_out, mid, w1_aug = (ws["h_t"], ws["h_v"], ws["hreg"], ws["y"],
+                                                  ws["y_out"], w["mid"], w["w1_aug"])
+        layers = list(zip([*ys], mid, y_out[1:], strict=True))
+        st = ws["st"]
+        toe, btoe = w["toe_wave"], w["btoe_wave"]
         for k, step in enumerate(ws["steps"]):
-            self._project(step)
-            # LSTM (Eq. 11-16) over the window's positions, gates i, f, o | g; h_0 = c_0 = 0
-            z = step["z"]
-            sig(z[0][:, :hid3], out=sg)
-            tanh(z[0][:, hid3:], out=tg)
-            mul(s_i, tg, out=cell)
-            tanh(cell, out=tmp)
-            mul(s_o, tmp, out=h_t)
-            for zt in z[1:]:
-                addmm(zt, h_t, wh_t, out=g)
-                sig(g_ifo, out=sg)
-                tanh(g_g, out=tg)
-                cell.mul_(s_f).addcmul_(s_i, tg)
-                tanh(cell, out=tmp)
-                mul(s_o, tmp, out=h_t)
+            self._project(step["x"], toe, btoe, st)
+            blk = step["blk"]
+            # W_h h of all in-flight windows in one matmul, + the shared interior projection
+            # (broadcast) and the top-edge projections (same sums as addmm, measured faster
+            # than baddbmm with an expanded bias)
+            torch.mm(blk["h"], wh_t, out=blk["g"])
+            blk["g_int"].add_(blk["z_int"])
+            if blk["edge"] is not None:
+                ze, ge = blk["edge"]
+                ge.add_(ze)
+            self._cell(None, blk)
+            for zb, cb in step["bottom"]:
+                self._cell(zb, cb)
+            if step["h_last"] is not None:
+                h_t.copy_(step["h_last"])
             # regressor (3.1.3) on [h_L, v_{k+1}, 1]
             h_v.copy_(vn[:, k])
-            y = torch.mm(hreg, w1_aug, out=ys[0])
-            for (wl, bl), yo in zip(mid, ys[1:], strict=True):
-                y.clamp_(min=0.0)
-                y = addmm(bl, y, wl, out=yo)
-            step["f_next"].copy_(torch.addcmul(step["f_prev"] + shift, y, scale))
+            torch.mm(hreg, w1_aug, out=y_out[0])
+            for y, wl, yo in layers:
+                y.relu_()  # the ones column stays 1
+                torch.mm(y, wl, out=yo)
+            torch.add(step["f_prev"], y_out[-1], out=step["f_next"])
         forces = bufn[:, h:, 2:4] * in_std[2:4] + in_mean[2:4]
         return torch.cat([q.unsqueeze(-1), forces], dim=-1)
