@@ -3,6 +3,8 @@ and one update lowering the loss on the new trajectory's query set."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -187,6 +189,24 @@ def test_adam_option_and_short_trajectory() -> None:
     rep2 = learner.update(short, [])
     assert not rep2["updated"] and "samples" in rep2["reason"]
     assert learner.version == 1
+
+
+def test_task_reduce_mean_divides_the_eq27_sum_by_the_number_of_tasks() -> None:
+    summed = _learner(first_order=False)
+    trajs = [make_traj(40), make_traj(41, gain=1.4), make_traj(42, gain=0.8)]
+    tasks = tasks_for(summed, trajs, seed=7)
+    theta = summed.params()
+    torch.manual_seed(0)
+    mean = MetaLearner(TinyModel().double(), replace(summed.cfg, task_reduce="mean"),
+                       loss_fn=default_loss)
+    assert summed.cfg.task_reduce == "sum" and len(tasks) == 3
+    assert torch.allclose(mean.meta_objective(theta, tasks),
+                          summed.meta_objective(theta, tasks) / 3)
+    g_sum, g_mean = summed.meta_gradient(theta, tasks), mean.meta_gradient(theta, tasks)
+    for k in theta:
+        assert torch.allclose(g_mean[k], g_sum[k] / 3)
+    with pytest.raises(ParameterError, match=r"maml\.task_reduce"):
+        MamlConfig.from_params({"maml.task_reduce": "max"})
 
 
 def test_config_validation_names_the_field() -> None:

@@ -72,6 +72,8 @@ MAML_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("maml.optimizer", str, "sgd", "meta step rule: sgd = Eq. 27, adam = Adam(beta)",
               choices=("sgd", "adam")),
     ParamSpec("maml.grad_clip", float, 0.0, "clip the meta-gradient norm; 0 = off", min=0.0),
+    ParamSpec("maml.task_reduce", str, "sum",
+              "Eq. 27 bracket over the 1 + M tasks: sum (paper) or mean", choices=("sum", "mean")),
     ParamSpec("maml.eval_slices", int, 64,
               "slices of tau_new for the before/after loss report", min=1),
     ParamSpec("maml.seed", int, 0, "seed of the slice sampling", min=0),
@@ -93,6 +95,7 @@ class MamlConfig:
     first_order: bool = False
     optimizer: str = "sgd"
     grad_clip: float = 0.0
+    task_reduce: str = "sum"
     eval_slices: int = 64
     seed: int = 0
 
@@ -280,10 +283,16 @@ class MetaLearner:
         return p
 
     def meta_objective(self, params: Params, tasks: Sequence[Task]) -> Tensor:
-        """The bracket of Eq. 27: sum over tasks of L_query(F_{theta'}), theta' from Eq. 26."""
+        """The bracket of Eq. 27: sum over tasks of L_query(F_{theta'}), theta' from Eq. 26.
+
+        With ``task_reduce = "mean"`` the sum is divided by the number of tasks (1 + M, fewer
+        while the pool is short), so the meta step no longer grows with the number of tasks.
+        """
         total = params[next(iter(params))].new_zeros(())
         for support, query in tasks:
             total = total + self.loss(self.adapt(params, support), query)
+        if self.cfg.task_reduce == "mean" and tasks:
+            total = total / len(tasks)
         return total
 
     def meta_gradient(self, params: Params, tasks: Sequence[Task]) -> Params:
