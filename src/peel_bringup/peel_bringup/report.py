@@ -16,12 +16,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from peel_msgs_py.atomic import atomic_write, atomic_write_text
 
 #: Per-task keys that are averaged over seeds.
 NUMERIC_KEYS: tuple[str, ...] = ("cost", "t_cpl", "sum_fx", "sum_fz", "update_s", "plan_s",
@@ -36,25 +37,9 @@ NEAR_MISS_N: float = 18.0
 # ------------------------------------------------------------------------------ atomic files
 
 
-def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None]) -> Path:
-    """Call ``write(tmp_path)`` then move the temporary file onto ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
-
-
 def write_text(path: str | os.PathLike[str], text: str) -> Path:
     """Write ``text`` atomically."""
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+    return atomic_write_text(path, text)
 
 
 def write_json(path: str | os.PathLike[str], obj: Any) -> Path:
