@@ -118,7 +118,7 @@ def _child_setup() -> None:  # pragma: no cover - runs in the child between fork
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
-    except (OSError, AttributeError):
+    except (OSError, AttributeError):  # not Linux: children then rely on the launcher's stop
         pass
 
 

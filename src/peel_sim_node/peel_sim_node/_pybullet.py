@@ -19,7 +19,7 @@ def _quiet_import():  # type: ignore[no-untyped-def]
             saved.append((fd, os.dup(fd)))
             os.dup2(devnull, fd)
         os.close(devnull)
-    except OSError:
+    except OSError:  # no redirectable stdio (best effort): the banner is merely printed
         pass
     try:
         import pybullet

@@ -233,7 +233,7 @@ class Service:
         try:
             ep = self._reader.get_matched_publication_data(writer_handle)
             clientid = _user_data_key(ep.qos if ep is not None else None, "clientid")
-        except DDSException:
+        except DDSException:  # writer already gone: reply without waiting for its match
             pass
         self._pending.append((to_wire(response, guid, seq), writer_handle, clientid, time.monotonic()))
         self._flush()
