@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from peel_msgs_py.params import ParamSpec, load_node_params, validate
+from peel_msgs_py.params import ParamSpec, load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import TrainConfig
@@ -58,9 +58,7 @@ class Baseline2Config:
     @classmethod
     def from_params(cls, flat: Mapping[str, Any]) -> Baseline2Config:
         """Build from a flat parameter dict; keys outside ``baseline2.`` are ignored."""
-        mine = {k: v for k, v in flat.items() if k.startswith("baseline2.")}
-        values = validate(BASELINE2_SPECS, mine)
-        return cls(**{k.split(".", 1)[1]: v for k, v in values.items()})
+        return cls(**validate_group(BASELINE2_SPECS, flat, "baseline2", strip=True))
 
 
 def load_baseline2_config(overrides: str | None = None, **changes: Any) -> Baseline2Config:

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from peel_msgs_py.errors import ParameterError, PeelError
-from peel_msgs_py.params import ParamSpec, load_node_params, validate
+from peel_msgs_py.params import ParamSpec, load_node_params, validate_group
 
 NODE = "model_learner_node"
 ARCHS: tuple[str, ...] = ("ours", "mlp", "cnn-lstm")
@@ -73,8 +73,7 @@ class ModelConfig:
     @classmethod
     def from_params(cls, flat: Mapping[str, Any]) -> ModelConfig:
         """Validate the ``model.*`` entries of a flat parameter dict."""
-        sub = {k: v for k, v in flat.items() if k.startswith("model.")}
-        p = validate(MODEL_SPECS, sub)
+        p = validate_group(MODEL_SPECS, flat, "model")
         cfg = cls(
             arch=p["model.arch"],
             h=p["model.h"],
@@ -144,9 +143,7 @@ class TrainConfig:
     @classmethod
     def from_params(cls, flat: Mapping[str, Any]) -> TrainConfig:
         """Validate the ``train.*`` entries of a flat parameter dict."""
-        sub = {k: v for k, v in flat.items() if k.startswith("train.")}
-        p = validate(TRAIN_SPECS, sub)
-        return cls(**{k.split(".", 1)[1]: v for k, v in p.items()})
+        return cls(**validate_group(TRAIN_SPECS, flat, "train", strip=True))
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -46,7 +46,7 @@ from torch import Tensor
 from torch.func import functional_call, grad
 
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.params import ParamSpec, load_node_params, validate
+from peel_msgs_py.params import ParamSpec, load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import TrainConfig, load_train_config
@@ -102,9 +102,7 @@ class MamlConfig:
     @classmethod
     def from_params(cls, flat: Mapping[str, Any]) -> MamlConfig:
         """Build from a flat parameter dict; keys outside ``maml.`` are ignored."""
-        mine = {k: v for k, v in flat.items() if k.startswith("maml.")}
-        values = validate(MAML_SPECS, mine)
-        return cls(**{k.split(".", 1)[1]: v for k, v in values.items()})
+        return cls(**validate_group(MAML_SPECS, flat, "maml", strip=True))
 
 
 def load_maml_config(overrides: str | None = None, **changes: Any) -> MamlConfig:

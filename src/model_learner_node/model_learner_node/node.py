@@ -28,7 +28,7 @@ from typing import Any
 import torch
 
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.params import ParamSpec, validate
+from peel_msgs_py.params import ParamSpec, validate_group
 
 NODE_NAME = "model_learner_node"
 _VERSION_RE = re.compile(r"model_v(\d+)")
@@ -48,7 +48,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 
 def node_params(flat: dict[str, Any]) -> dict[str, Any]:
     """Validate the ``node.*`` parameters (others are ignored)."""
-    return validate(NODE_SPECS, {k: v for k, v in flat.items() if k.startswith("node.")})
+    return validate_group(NODE_SPECS, flat, "node")
 
 
 def all_parameters(node: Any) -> dict[str, Any]:

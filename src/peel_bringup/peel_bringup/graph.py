@@ -42,7 +42,7 @@ from peel_msgs_py.params import (
     default_param_file,
     load_node_params,
     load_param_file,
-    validate,
+    validate_group,
 )
 
 NODE_NAME = "peel_bringup"
@@ -67,7 +67,7 @@ GRAPH_SPECS: tuple[ParamSpec, ...] = (
 def graph_params(override: str | None) -> dict[str, Any]:
     """The validated ``graph.*`` parameters: shipped config/peel_bringup.yaml + override file."""
     flat = load_node_params(NODE_NAME, override)
-    return validate(GRAPH_SPECS, {k: v for k, v in flat.items() if k.startswith("graph.")})
+    return validate_group(GRAPH_SPECS, flat, "graph")
 
 
 def _p(name: str, value: Any) -> list[str]:

@@ -135,6 +135,19 @@ def validate(
     return out
 
 
+def validate_group(
+    specs: Iterable[ParamSpec], flat: Mapping[str, Any], group: str, *, strip: bool = False
+) -> dict[str, Any]:
+    """:func:`validate` the ``<group>.*`` entries of a flat dict (other keys are ignored).
+
+    With ``strip=True`` the result is keyed by the names inside the group (``lr`` rather than
+    ``train.lr``), ready for ``SomeConfig(**values)``.
+    """
+    prefix = group + "."
+    values = validate(specs, {k: v for k, v in flat.items() if k.startswith(prefix)})
+    return {k[len(prefix):]: v for k, v in values.items()} if strip else values
+
+
 def config_dir() -> Path:
     """The directory holding the shipped ``config/*.yaml`` files.
 

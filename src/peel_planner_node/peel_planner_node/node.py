@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from peel_msgs_py.errors import CheckpointError, PeelError
-from peel_msgs_py.params import ParamSpec, validate
+from peel_msgs_py.params import ParamSpec, validate_group
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
 
@@ -50,7 +50,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 
 def node_params(flat: dict[str, Any]) -> dict[str, Any]:
     """Validate the ``node.*`` parameters (others are ignored)."""
-    return validate(NODE_SPECS, {k: v for k, v in flat.items() if k.startswith("node.")})
+    return validate_group(NODE_SPECS, flat, "node")
 
 
 def all_parameters(node: Any) -> dict[str, Any]:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from peel_msgs_py.params import ParamSpec, validate
+from peel_msgs_py.params import ParamSpec, validate_group
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 
@@ -58,7 +58,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 
 def node_params(flat: dict[str, Any]) -> dict[str, Any]:
     """Validate the ``node.*`` parameters of a flat parameter dict (others are ignored)."""
-    return validate(NODE_SPECS, {k: v for k, v in flat.items() if k.startswith("node.")})
+    return validate_group(NODE_SPECS, flat, "node")
 
 
 def library_params(flat: dict[str, Any]) -> dict[str, Any]:
