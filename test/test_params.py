@@ -15,7 +15,7 @@ def test_group_is_validated_other_groups_ignored_and_prefix_stripped() -> None:
 
 
 def test_bad_value_in_the_group_names_the_parameter() -> None:
-    with pytest.raises(ParameterError, match="'train.epochs'"):
+    with pytest.raises(ParameterError, match=r"'train\.epochs'"):
         validate_group(SPECS, {"train.epochs": 0}, "train")
-    with pytest.raises(ParameterError, match="unknown parameter 'train.lrr'"):
+    with pytest.raises(ParameterError, match=r"unknown parameter 'train\.lrr'"):
         validate_group(SPECS, {"train.lrr": 1.0}, "train")
