@@ -151,6 +151,30 @@ class Future:
         callback(self)
 
 
+def _open_endpoints(
+    node: Node, srv_type: type[Any], name: str, qos: QoSProfile, *, server: bool
+) -> tuple[int, DataReader, DataWriter, ReadCondition]:
+    """The DDS reader/writer pair of one service end, as rmw_cyclonedds lays it out.
+
+    A server reads ``rq/<name>Request`` and writes ``rr/<name>Reply``; a client the other way
+    round. Both carry their id in the USER_DATA QoS (``serviceid=`` / ``clientid=``).
+    Returns (id, reader, writer, read condition).
+    """
+    ctx = node.context
+    ident = ctx.next_client_service_id()
+    udata = f"{'serviceid' if server else 'clientid'}={csid_to_string(ident)};".encode()
+    req_topic = ctx.topic(dds_request(name), wire_type(srv_type.Request))
+    rep_topic = ctx.topic(dds_reply(name), wire_type(srv_type.Response))
+    read_topic, write_topic = (req_topic, rep_topic) if server else (rep_topic, req_topic)
+    try:
+        reader = DataReader(ctx.participant, read_topic, qos=to_dds(qos, udata, writer=False))
+        writer = DataWriter(ctx.participant, write_topic, qos=to_dds(qos, udata, writer=True))
+        return ident, reader, writer, ReadCondition(reader, ANY_STATE)
+    except DDSException as exc:
+        what = "service" if server else "client for"
+        raise PeelError(f"cannot create {what} {name}: {exc}") from None
+
+
 class Service:
     """``rclpy.service.Service``: ``callback(request, response) -> response``."""
 
@@ -162,17 +186,8 @@ class Service:
         self.callback = callback
         self.qos_profile = qos
         self._node = node
-        ctx = node.context
-        self._id = ctx.next_client_service_id()
-        udata = f"serviceid={csid_to_string(self._id)};".encode()
-        req_topic = ctx.topic(dds_request(name), wire_type(srv_type.Request))
-        rep_topic = ctx.topic(dds_reply(name), wire_type(srv_type.Response))
-        try:
-            self._reader = DataReader(ctx.participant, req_topic, qos=to_dds(qos, udata, writer=False))
-            self._writer = DataWriter(ctx.participant, rep_topic, qos=to_dds(qos, udata, writer=True))
-            self._cond = ReadCondition(self._reader, ANY_STATE)
-        except DDSException as exc:
-            raise PeelError(f"cannot create service {name}: {exc}") from None
+        self._id, self._reader, self._writer, self._cond = _open_endpoints(
+            node, srv_type, name, qos, server=True)
         #: replies waiting for the client's reply reader: (wire sample, writer handle, id, t0)
         self._pending: list[tuple[Any, int, str | None, float]] = []
 
@@ -256,18 +271,9 @@ class Client:
         self.srv_name = name
         self.qos_profile = qos
         self._node = node
-        ctx = node.context
-        self._id = ctx.next_client_service_id()
-        udata = f"clientid={csid_to_string(self._id)};".encode()
-        req_topic = ctx.topic(dds_request(name), wire_type(srv_type.Request))
-        rep_topic = ctx.topic(dds_reply(name), wire_type(srv_type.Response))
-        try:
-            self._writer = DataWriter(ctx.participant, req_topic, qos=to_dds(qos, udata, writer=True))
-            self._reader = DataReader(ctx.participant, rep_topic, qos=to_dds(qos, udata, writer=False))
-            self._cond = ReadCondition(self._reader, ANY_STATE)
-            self._guid = self._writer.get_instance_handle() & _U64
-        except DDSException as exc:
-            raise PeelError(f"cannot create client for {name}: {exc}") from None
+        self._id, self._reader, self._writer, self._cond = _open_endpoints(
+            node, srv_type, name, qos, server=False)
+        self._guid = self._writer.get_instance_handle() & _U64
         self._futures: dict[int, Future] = {}
 
     @property
