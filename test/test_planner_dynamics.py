@@ -56,6 +56,26 @@ def test_learned_rollout_matches_stepwise_predict(arch: str) -> None:
                                atol=2e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize("arch", ["ours", "cnn-lstm"])
+def test_rollout_workers_give_bit_identical_results(arch: str) -> None:
+    """Sample chunks rolled out on worker threads (each with its own workspace) equal one
+    rollout of the whole batch bit for bit, for uneven chunks and repeated calls; a batch below
+    2 x min_chunk stays in one chunk."""
+    torch.manual_seed(5)
+    pred = ForcePredictor(ModelConfig().with_arch(arch), NORM)
+    hist = history(25, seed=6)
+    one = LearnedDynamics(pred)
+    many = LearnedDynamics(pred, workers=3, min_chunk=4)
+    assert many._chunk_count(11) == 2 and many._chunk_count(13) == 3
+    assert many._chunk_count(7) == 1 and one._chunk_count(10_000) == 1
+    for n, s in ((13, 30), (11, 9), (13, 30), (7, 5)):
+        v = torch.rand(n, s) * 5.0
+        assert torch.equal(many.rollout(hist, v), one.rollout(hist, v))
+    assert len(many._chunks) == 2  # workspaces kept for the reused chunks
+    with pytest.raises(PeelError, match="rollout workers"):
+        many.set_workers(0)
+
+
 @pytest.mark.parametrize("arch", ["ours", "cnn-lstm", "mlp"])
 def test_fast_path_matches_stepwise_predict_over_long_horizons_and_reused_workspace(
         arch: str) -> None:

@@ -104,6 +104,31 @@ def test_planner_update_uses_eq38_and_eq31() -> None:
     assert np.all(v >= cfg.mppi.u_min) and np.all(v <= cfg.mppi.u_max)
 
 
+@pytest.mark.parametrize("which", ["estimate", "sigma0"])
+def test_control_term_uses_the_configured_sigma(which: str) -> None:
+    """After Sigma was re-estimated (0.09 -> floor 0.25 here), Eq. 38's control term uses the
+    estimate (``control_cost_sigma: estimate``, the paper) or sigma0 (``sigma0``), while the
+    noise is drawn with the estimate either way."""
+    cfg = config(**{"mppi.n_samples": 9, "mppi.horizon": 3, "mppi.dtype": "float64",
+                    "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
+                    "mppi.sigma_min_count": 1, "mppi.control_cost_scale": 1.0,
+                    "mppi.control_cost_sigma": which})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    planner.observe(2.3, 2.0)
+    assert planner.sigma == pytest.approx(0.25)
+    u_before = planner.U.clone()
+    planner.update(append(start_history(), 1.0))
+    last = planner.last
+    eps = last["eps"].numpy()
+    assert np.abs(eps).max() < 4.0 * math.sqrt(0.25)  # drawn with the estimate
+    sigma_ctrl = 0.25 if which == "estimate" else 0.8
+    want = direct_eq38(last["cost"].tolist(), eps.tolist(), u_before.tolist(), sigma_ctrl, 0.3)
+    np.testing.assert_allclose(last["omega"].numpy(), want, rtol=1e-9, atol=1e-14)
+    other = direct_eq38(last["cost"].tolist(), eps.tolist(), u_before.tolist(),
+                        0.8 if which == "estimate" else 0.25, 0.3)
+    assert not np.allclose(last["omega"].numpy(), other, rtol=1e-3)
+
+
 # ---------------------------------------------------------------- convergence (LQ case)
 @pytest.mark.parametrize("scale", [1.0, 0.0])
 def test_linear_quadratic_plan_converges_to_known_optimum(scale: float) -> None:
@@ -248,3 +273,19 @@ def test_bad_dynamics_output_is_refused() -> None:
         planner.plan(start_history())
     with pytest.raises(PeelError, match="rollout"):
         planner.set_dynamics(object())
+
+
+def test_planner_hands_rollout_workers_to_the_dynamics() -> None:
+    """``mppi.rollout_workers`` / ``min_samples_per_worker`` reach a dynamics that takes them
+    (LearnedDynamics), also after set_dynamics; a dynamics without set_workers is fine."""
+    class Recording(LinearDynamics):
+        def set_workers(self, workers: int, min_chunk: int) -> None:
+            self.workers = (workers, min_chunk)
+
+    cfg = config(**{"mppi.rollout_workers": 3, "mppi.min_samples_per_worker": 17})
+    dyn, other = Recording(), Recording()
+    planner = Planner(dyn, Cost(cfg.cost), cfg)
+    assert dyn.workers == (3, 17)
+    planner.set_dynamics(other)
+    assert other.workers == (3, 17)
+    planner.set_dynamics(LinearDynamics())

@@ -224,6 +224,11 @@ STUDY_VARIANTS: dict[str, dict[str, Any]] = {
     "peel_no_control_cost": {"mppi.control_cost_scale": 0.0},
     "peel_sigma_fixed_1_no_control_cost": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0,
                                            "mppi.control_cost_scale": 0.0},
+    # the control term with a fixed Sigma = sigma0 (a fixed control-cost weight R = lambda /
+    # sigma0), sampling still with the re-estimated Sigma
+    "peel_control_sigma0": {"mppi.control_cost_sigma": "sigma0"},
+    "peel_control_estimate": {"mppi.control_cost_sigma": "estimate"},
+    "peel_control_scale_0.05": {"mppi.control_cost_scale": 0.05},
 }
 
 

@@ -58,6 +58,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("mppi.shift_fill", str, "last", "shift fill (Alg. 2 l.18-19)",
               choices=("last", "init")),
     ParamSpec("mppi.control_cost_scale", float, 0.1, "factor on Eq. 38's control term", min=0.0),
+    ParamSpec("mppi.control_cost_sigma", str, "estimate",
+              "Sigma in Eq. 38's control term: the re-estimated Sigma or sigma0",
+              choices=("estimate", "sigma0")),
+    ParamSpec("mppi.rollout_workers", int, 2, "threads rolling out sample chunks", min=1, max=64),
+    ParamSpec("mppi.min_samples_per_worker", int, 256, "smallest sample chunk per worker",
+              min=1, max=1_000_000),
     ParamSpec("mppi.iterations", int, 1, "MPPI updates per plan()", min=1, max=1000),
     ParamSpec("mppi.seed", int, 0, "noise seed", min=0),
     ParamSpec("mppi.dtype", str, "float32", "torch dtype of rollouts",
@@ -106,6 +112,9 @@ class MppiConfig:
     u_init: float = 1.0
     shift_fill: str = "last"
     control_cost_scale: float = 0.1
+    control_cost_sigma: str = "estimate"
+    rollout_workers: int = 2
+    min_samples_per_worker: int = 256
     iterations: int = 1
     seed: int = 0
     dtype: str = "float32"
@@ -165,6 +174,9 @@ class PlannerConfig:
             sigma_window=p["mppi.sigma_window"], sigma_min_count=p["mppi.sigma_min_count"],
             u_min=p["mppi.u_min"], u_max=p["mppi.u_max"], u_init=p["mppi.u_init"],
             shift_fill=p["mppi.shift_fill"], control_cost_scale=p["mppi.control_cost_scale"],
+            control_cost_sigma=p["mppi.control_cost_sigma"],
+            rollout_workers=p["mppi.rollout_workers"],
+            min_samples_per_worker=p["mppi.min_samples_per_worker"],
             iterations=p["mppi.iterations"], seed=p["mppi.seed"], dtype=p["mppi.dtype"],
             dt_s=p["task.dt_s"],
         )
@@ -190,6 +202,9 @@ class PlannerConfig:
             "mppi.sigma_window": m.sigma_window, "mppi.sigma_min_count": m.sigma_min_count,
             "mppi.u_min": m.u_min, "mppi.u_max": m.u_max, "mppi.u_init": m.u_init,
             "mppi.shift_fill": m.shift_fill, "mppi.control_cost_scale": m.control_cost_scale,
+            "mppi.control_cost_sigma": m.control_cost_sigma,
+            "mppi.rollout_workers": m.rollout_workers,
+            "mppi.min_samples_per_worker": m.min_samples_per_worker,
             "mppi.iterations": m.iterations, "mppi.seed": m.seed, "mppi.dtype": m.dtype,
             "safety.f_prewarn_n": s.f_prewarn_n,
         }

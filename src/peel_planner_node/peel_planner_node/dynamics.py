@@ -16,6 +16,7 @@ of Algorithm 2, ``x <- x + F_theta(x, v_t) dt``, batched over the N samples.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -66,9 +67,20 @@ class LearnedDynamics:
     preallocated buffers, normalisation folded into the force update); its rearranged weights
     are cached and rebuilt whenever a parameter or buffer of the predictor changes (in place or
     not), so updates by the learner are seen. Other architectures use ``predictor.predict``.
+
+    **Rollout workers** (``workers``, ``min_chunk``; the planner sets them from
+    ``mppi.rollout_workers`` / ``mppi.min_samples_per_worker``): the N samples are independent,
+    so a fused rollout of N >= 2 x min_chunk samples is split into up to ``workers`` contiguous
+    chunks, each rolled out on its own thread with its own workspace (torch releases the GIL
+    inside every op). The result is bit-identical to one chunk (``test_planner_dynamics``), so
+    it does not depend on the number of workers. Each chunk runs its ops single-threaded, which
+    at N = 1000 was faster than torch's intra-op threads over the whole batch (86 vs 95 ms per
+    50-step rollout on 2 cores, docs/planner.md); run the process with
+    ``torch.set_num_threads(1)`` when workers > 1, or the two pools oversubscribe the cores.
     """
 
-    def __init__(self, predictor: Any, *, dt_s: float = 0.1, fast: bool = True) -> None:
+    def __init__(self, predictor: Any, *, dt_s: float = 0.1, fast: bool = True,
+                 workers: int = 1, min_chunk: int = 256) -> None:
         if not hasattr(predictor, "predict") or not hasattr(predictor, "h"):
             raise PeelError("model must be a ForcePredictor with .h and .predict(hist, v_next)")
         self.predictor = predictor
@@ -87,11 +99,50 @@ class LearnedDynamics:
 
             if FusedConvAttentionLSTM.supports(predictor):
                 self.fused = FusedConvAttentionLSTM(predictor)
+        self._chunks: list[Any] = []
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_size = 0
+        self.set_workers(workers, min_chunk)
+
+    def set_workers(self, workers: int, min_chunk: int = 256) -> None:
+        """Roll out up to ``workers`` sample chunks of at least ``min_chunk`` in parallel."""
+        if int(workers) < 1 or int(min_chunk) < 1:
+            raise PeelError(f"rollout workers = {workers} and min_chunk = {min_chunk} must be >= 1")
+        self.workers, self.min_chunk = int(workers), int(min_chunk)
+
+    def _chunk_count(self, n: int) -> int:
+        if self.fused is None:
+            return 1
+        return max(1, min(self.workers, n // self.min_chunk))
+
+    def _rollout_chunks(self, window: np.ndarray, v: torch.Tensor, k: int) -> torch.Tensor:
+        from .fused import FusedConvAttentionLSTM
+
+        while len(self._chunks) < k - 1:  # chunk 0 uses self.fused; one workspace per chunk
+            self._chunks.append(FusedConvAttentionLSTM(self.predictor))
+        if self._pool is None or self._pool_size < k - 1:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
+            self._pool = ThreadPoolExecutor(max_workers=k - 1, thread_name_prefix="peel-rollout")
+            self._pool_size = k - 1
+        parts = torch.tensor_split(v, k, dim=0)
+
+        def run(fused: Any, part: torch.Tensor) -> torch.Tensor:
+            with torch.inference_mode():  # thread-local: entered in the worker thread too
+                return fused.rollout(window, part, self.dt_s)
+
+        futures = [self._pool.submit(run, f, p)
+                   for f, p in zip(self._chunks[:k - 1], parts[1:], strict=True)]
+        first = run(self.fused, parts[0])
+        return torch.cat([first, *(f.result() for f in futures)], dim=0)
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         """Predicted (q, fx, fz) [N, S, 3] for ``v`` [N, S] from the end of ``history``."""
         if self.fused is not None:
             window = history_window(history, self.h)
+            k = self._chunk_count(int(v.shape[0]))
+            if k > 1:
+                return self._rollout_chunks(window, v, k)
             with torch.inference_mode():
                 return self.fused.rollout(window, v, self.dt_s)
         h = self.h

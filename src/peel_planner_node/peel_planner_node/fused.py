@@ -193,6 +193,15 @@ class FusedConvAttentionLSTM:
             "bx": ifog(lstm.w_x.bias.detach()).contiguous(),
             "wh_t": ifog(lstm.w_h.weight.detach()).t().contiguous(),
             "a1w_t": mlp[0].weight.detach().t().contiguous(), "a1b": mlp[0].bias.detach(),
+            # the same on [x, 1]: the bias as the last weight row (wavefront positions)
+            "a1w_aug": torch.cat([mlp[0].weight.detach().t(),
+                                  mlp[0].bias.detach().unsqueeze(0)]).contiguous(),
+            # gate-major [4, in, hid] (gates i, f, o, g) for the wavefront's batched matmuls
+            "wx4_aug": torch.cat([ifog(lstm.w_x.weight.detach()).t(),
+                                  ifog(lstm.w_x.bias.detach()).unsqueeze(0)])
+            .view(-1, 4, hid).permute(1, 0, 2).contiguous(),
+            "wh4": ifog(lstm.w_h.weight.detach()).t().reshape(hid, 4, hid).permute(1, 0, 2)
+            .contiguous(),
             "a2w_t": mlp[2].weight.detach().t().contiguous(), "a2b": mlp[2].bias.detach(),
             "w1_aug": w1_aug,
             # later FC layers as one mm each on [y, 1] (bias as the last weight row); the last
@@ -227,10 +236,20 @@ class FusedConvAttentionLSTM:
         row = (h + s) * 4
         flat = bufn.view(n, row)
         # per-step projections of the wavefront positions, position-major [nw, N, ...]
-        conv, zt, zf = e(n, nw * c_all), e(nw, n, c_all), e(nw * n, 4 * hid)
-        st = {"conv": conv, "conv_t": conv.view(n, nw, c_all).transpose(0, 1), "zt": zt,
-              "zz": zt.view(nw * n, c_all), "zs": zt.view(nw * n, self.n_scales, self.channels),
-              "att": e(nw * n, a_hid), "zout": zf}
+        # zt: [nw, N, c_all + 1], the last column 1 (carries the biases of the attention's
+        # first layer and of W_x x + b into their matmuls: addmm would copy the bias first)
+        # zf: the projections gate-major [4, nw * N, hid] (gates i, f, o, g each contiguous)
+        conv, zt, zf = e(n, nw * c_all), e(nw, n, c_all + 1), e(4, nw * n, hid)
+        zt[..., c_all] = 1.0
+        rows_w = nw * n
+        a = e(rows_w, self.n_scales)
+        st = {"conv": conv, "conv_t": conv.view(n, nw, c_all).transpose(0, 1),
+              "zt_c": zt[..., :c_all], "zz": zt.view(rows_w, c_all + 1),
+              "zs": zt.as_strided((rows_w, self.n_scales, self.channels),
+                                  (c_all + 1, self.channels, 1)),
+              "zz4": zt.view(rows_w, c_all + 1).unsqueeze(0).expand(4, rows_w, c_all + 1),
+              "att": e(rows_w, a_hid), "a": a, "a_w": a.unsqueeze(-1), "esum": e(rows_w, 1),
+              "zero": torch.zeros((), dtype=dtype, device=dev), "zout": zf}
         # prologue: windows 0..D-1 over all positions, batch 1 each, window-major
         pro = torch.zeros((depth - 1 + h, 4), dtype=dtype, device=dev)
         pconv, zp = e(depth, length * c_all), e(depth * length, 4 * hid)
@@ -249,8 +268,14 @@ class FusedConvAttentionLSTM:
                              tgp[:a], tmpp[:a]))
         rows = max(s, depth)
         hs, cs = e(rows, n, hid), e(rows, n, hid)
-        g, sg, tg, tmp = e(depth * n, 4 * hid), e(depth * n, 3 * hid), e(depth * n, hid), \
-            e(depth * n, hid)
+        # gate buffers per row count, gate-major: every gate a contiguous [m, hid] block
+        # (elementwise ops on column slices of [m, 4 hid] were up to 4x slower, docs/planner.md)
+        gate_bufs: dict[int, tuple[torch.Tensor, ...]] = {}
+
+        def gates(m: int) -> tuple[torch.Tensor, ...]:
+            if m not in gate_bufs:
+                gate_bufs[m] = (e(4, m, hid), e(3, m, hid), e(m, hid), e(m, hid))
+            return gate_bufs[m]
         # regressor activations [y, 1]: the ones column carries the next layer's bias
         ys = [e(n, w["w1_aug"].shape[1] + 1)] + [e(n, wl.shape[1] + 1) for wl in w["mid"][:-1]]
         for y in ys:
@@ -259,18 +284,19 @@ class FusedConvAttentionLSTM:
         hreg = e(n, hid + 2)
         hreg[:, hid + 1] = 1.0
         h_t = hreg[:, :hid]
-        wh_t = w["wh_t"]
-        z_int = zf[pad * n:(pad + 1) * n]
-        z_bot = [zf[(pad + p) * n:(pad + p + 1) * n] for p in range(1, pad + 1)]
+        wh4 = w["wh4"]
+        z_int = zf[:, pad * n:(pad + 1) * n].unsqueeze(1)  # [4, 1, N, hid], broadcast
+        z_bot = [zf[:, (pad + p) * n:(pad + p + 1) * n] for p in range(1, pad + 1)]
 
         def cell(c: int, k0: int, out_h: torch.Tensor | None = None) -> dict:
             """Views of one LSTM cell update over windows k0..k0+c-1 (rows of hs, cs)."""
             m = c * n
-            return {"h": hs[k0:k0 + c].view(m, hid), "c": cs[k0:k0 + c].view(m, hid),
-                    "g": g[:m], "g_ifo": g[:m, :3 * hid], "g_g": g[:m, 3 * hid:], "sg": sg[:m],
-                    "s_i": sg[:m, :hid], "s_f": sg[:m, hid:2 * hid], "s_o": sg[:m, 2 * hid:],
-                    "tg": tg[:m], "tmp": tmp[:m], "wh_t": wh_t,
-                    "h_out": hs[k0:k0 + c].view(m, hid) if out_h is None else out_h}
+            g, sg, tg, tmp = gates(m)
+            hv = hs[k0:k0 + c].view(m, hid)
+            return {"h4": hv.unsqueeze(0).expand(4, m, hid), "c": cs[k0:k0 + c].view(m, hid),
+                    "g": g, "g_ifo": g[:3], "g_g": g[3], "sg": sg,
+                    "s_i": sg[0], "s_f": sg[1], "s_o": sg[2], "tg": tg, "tmp": tmp, "wh4": wh4,
+                    "h_out": hv if out_h is None else out_h}
 
         steps = []
         for k in range(s):
@@ -278,14 +304,16 @@ class FusedConvAttentionLSTM:
             nint = min(c, depth - pad)
             nedge = c - nint
             blk = cell(c, k)
+            g = blk["g"]
             blk.update({
-                "g_int": g[:nint * n].view(nint, n, 4 * hid), "z_int": z_int,
-                "edge": (zf[:nedge * n], g[nint * n:c * n]) if nedge else None})
+                "g_int": g[:, :nint * n].view(4, nint, n, hid), "z_int": z_int,
+                "edge": (zf[:, :nedge * n], g[:, nint * n:c * n]) if nedge else None})
             bottom = [(z_bot[p], cell(1, k, h_t if p == pad - 1 else None))
                       for p in range(pad)]
             steps.append({"x": flat.as_strided((n, h * 4), (row, 1), k * 4), "blk": blk,
                           "bottom": bottom, "h_last": hs[k] if pad == 0 else None,
-                          "f_prev": bufn[:, h + k - 1, 2:4], "f_next": bufn[:, h + k, 2:4]})
+                          "f_prev": bufn[:, h + k - 1, 2:4], "f_next": bufn[:, h + k, 2:4],
+                          "v_next": bufn[:, h + k, 1]})
         ws = {
             "bufn": bufn, "steps": steps, "st": st, "pro": pro,
             "xpro": pro.view(-1).as_strided((depth, h * 4), (4, 1)), "pst": pst,
@@ -301,6 +329,29 @@ class FusedConvAttentionLSTM:
         return ws
 
     # ------------------------------------------------------------------ rollout
+    def _project_wave(self, x: torch.Tensor, st: dict) -> None:
+        """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of the wavefront positions.
+
+        The same sums as :meth:`_project` in another order: ReLU and the transpose to
+        position-major are one ``maximum`` into ``zt``, whose ones column makes the first
+        attention layer and the input projection bias-free matmuls.
+        """
+        w = self._w
+        conv = st["conv"]
+        torch.addmm(w["btoe_wave"], x, w["toe_wave"], out=conv)
+        torch.maximum(st["conv_t"], st["zero"], out=st["zt_c"])  # ReLU, position-major
+        att, a, esum = st["att"], st["a"], st["esum"]
+        torch.mm(st["zz"], w["a1w_aug"], out=att)
+        att.tanh_()
+        torch.addmm(w["a2b"], att, w["a2w_t"], out=a)
+        if w["att_shift"]:
+            a.sub_(a.amax(dim=-1, keepdim=True))
+        a.exp_()
+        torch.sum(a, dim=-1, keepdim=True, out=esum)
+        a.div_(esum)
+        st["zs"].mul_(st["a_w"])
+        torch.bmm(st["zz4"], w["wx4_aug"], out=st["zout"])
+
     def _project(self, x: torch.Tensor, toe: torch.Tensor, btoe: torch.Tensor,
                  st: dict) -> None:
         """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of the positions in ``toe``."""
@@ -308,8 +359,6 @@ class FusedConvAttentionLSTM:
         conv = st["conv"]
         torch.addmm(btoe, x, toe, out=conv)
         conv.relu_()
-        if "zt" in st:
-            st["zt"].copy_(st["conv_t"])  # position-major
         att = st["att"]
         torch.addmm(w["a1b"], st["zz"], w["a1w_t"], out=att)
         att.tanh_()
@@ -321,11 +370,11 @@ class FusedConvAttentionLSTM:
 
     @staticmethod
     def _cell(z: torch.Tensor | None, c: dict) -> None:
-        """One LSTM step (Eq. 11-16), gates i, f, o | g, on the views ``c``; ``z`` = the input
-        projection (None: the gate pre-activations are already in c["g"])."""
-        wh_t = c["wh_t"]
+        """One LSTM step (Eq. 11-16), gates i, f, o | g gate-major [4, m, hid], on the views
+        ``c``; ``z`` = the input projection [4, m, hid] (None: the gate pre-activations are
+        already in c["g"])."""
         if z is not None:
-            torch.addmm(z, c["h"], wh_t, out=c["g"])
+            torch.baddbmm(z, c["h4"], c["wh4"], out=c["g"])
         torch.sigmoid(c["g_ifo"], out=c["sg"])
         torch.tanh(c["g_g"], out=c["tg"])
         c["c"].mul_(c["s_f"]).addcmul_(c["s_i"], c["tg"])
@@ -348,7 +397,7 @@ class FusedConvAttentionLSTM:
         n, s = v.shape
         dtype, dev = w["in_mean"].dtype, w["in_mean"].device
         ws = self._workspace(n, s, dtype, dev)
-        wh_t = w["wh_t"]
+        wh_t, wh4 = w["wh_t"], w["wh4"]
         in_mean, in_std = w["in_mean"], w["in_std"]
         v = v.to(dtype=dtype, device=dev)
         base = torch.as_tensor(window, dtype=dtype, device=dev)
@@ -357,8 +406,7 @@ class FusedConvAttentionLSTM:
         bufn[:, :h] = basen
         q = base[-1, 0] + dt_s * torch.cumsum(v, dim=1)
         bufn[:, h:, 0] = (q - in_mean[0]) / in_std[0]
-        vn = (v - in_mean[1]) / in_std[1]
-        bufn[:, h:, 1] = vn
+        bufn[:, h:, 1] = (v - in_mean[1]) / in_std[1]
         # prologue: windows 0..J over their positions that see measured rows only (batch 1)
         ws["pro"][:h] = basen
         self._project(ws["xpro"], w["toe_all"], w["btoe_all"], ws["pst"])
@@ -381,14 +429,13 @@ class FusedConvAttentionLSTM:
                                                   ws["y_out"], w["mid"], w["w1_aug"])
         layers = list(zip([*ys], mid, y_out[1:], strict=True))
         st = ws["st"]
-        toe, btoe = w["toe_wave"], w["btoe_wave"]
-        for k, step in enumerate(ws["steps"]):
-            self._project(step["x"], toe, btoe, st)
+        for step in ws["steps"]:
+            self._project_wave(step["x"], st)
             blk = step["blk"]
             # W_h h of all in-flight windows in one matmul, + the shared interior projection
             # (broadcast) and the top-edge projections (same sums as addmm, measured faster
             # than baddbmm with an expanded bias)
-            torch.mm(blk["h"], wh_t, out=blk["g"])
+            torch.bmm(blk["h4"], wh4, out=blk["g"])
             blk["g_int"].add_(blk["z_int"])
             if blk["edge"] is not None:
                 ze, ge = blk["edge"]
@@ -399,7 +446,7 @@ class FusedConvAttentionLSTM:
             if step["h_last"] is not None:
                 h_t.copy_(step["h_last"])
             # regressor (3.1.3) on [h_L, v_{k+1}, 1]
-            h_v.copy_(vn[:, k])
+            h_v.copy_(step["v_next"])  # normalised v_{k+1}
             torch.mm(hreg, w1_aug, out=y_out[0])
             for y, wl, yo in layers:
                 y.relu_()  # the ones column stays 1

@@ -102,6 +102,10 @@ class Planner:
         """Swap the forward model; U, Sigma, D_Sigma and the noise stream are kept."""
         if not callable(getattr(dynamics, "rollout", None)):
             raise PeelError("dynamics must provide rollout(history, v) -> Tensor[N, S, 3]")
+        set_workers = getattr(dynamics, "set_workers", None)
+        if callable(set_workers):
+            m = self.config.mppi
+            set_workers(m.rollout_workers, m.min_samples_per_worker)
         self.dynamics = dynamics
 
     @property
@@ -141,7 +145,8 @@ class Planner:
             u = self.U
             v = torch.clamp(u + self._noise * math.sqrt(self.sigma), m.u_min, m.u_max)
             eps = v - u
-            v_model = v.repeat_interleave(self.k, dim=1) if self.k > 1 else v
+            v_model = (v.unsqueeze(-1).expand(self.n, self.h, self.k).reshape(self.n, self.h * self.k)
+                       if self.k > 1 else v)
             out = self.dynamics.rollout(history, v_model)
             if out.shape != (self.n, self.h * self.k, 3):
                 raise PeelError(f"dynamics returned shape {tuple(out.shape)}, "
@@ -149,7 +154,8 @@ class Planner:
             j = self.cost.rollout_cost(q_now, t_now, out).to(self.dtype)
             if not bool(torch.isfinite(j).all()):
                 raise PeelError("rollout cost is not finite: the model predicted NaN/inf forces")
-            omega = eq38_weights(j, eps, u, self.sigma, self.lam, m.control_cost_scale)
+            sigma_ctrl = self.sigma if m.control_cost_sigma == "estimate" else m.sigma0
+            omega = eq38_weights(j, eps, u, sigma_ctrl, self.lam, m.control_cost_scale)
             self.U = omega @ v
             self.last = {"omega": omega, "cost": j, "v": v, "eps": eps,
                          "ess": float(1.0 / (omega * omega).sum())}
