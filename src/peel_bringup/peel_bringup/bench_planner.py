@@ -248,14 +248,17 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
     torch.set_num_threads(args.threads)
     pred, model_info = load_model()
     n, h = args.study_n, args.study_h
-    base = load_planner_config().replace(**{"mppi.n_samples": n, "mppi.horizon": h})
+    base = load_planner_config().replace(**{**args.set, "mppi.n_samples": n, "mppi.horizon": h})
     cost = Cost(base.cost)
     tasks, pseeds = list(range(args.tasks)), list(range(args.seeds))
     names = [*(args.variants.split(",") if args.variants else STUDY_VARIANTS), "pytorch_mppi"]
+    settings = dict(STUDY_VARIANTS)
     for name in names[:-1]:
-        if name not in STUDY_VARIANTS:
-            raise PeelError(f"--variants: unknown variant {name!r} (one of "
-                            f"{', '.join(STUDY_VARIANTS)})")
+        if name not in settings:
+            if "=" not in name:
+                raise PeelError(f"--variants: unknown variant {name!r} (one of "
+                                f"{', '.join(STUDY_VARIANTS)}, or NAME=VALUE[+NAME=VALUE...])")
+            settings[name] = parse_sets(name.split("+"))
     res: dict[str, dict[str, list]] = {k: {"J": [], "t": [], "out": [], "sigma": []}
                                        for k in names}
     env = PeelEnv(load_sim_config(), seed=0)
@@ -267,7 +270,7 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
                 if name == "pytorch_mppi":
                     policy: Any = TorchMppiPolicy(pred, cost, base, seed=ps)
                 else:
-                    cfg = base.replace(**{**STUDY_VARIANTS[name], "mppi.seed": ps})
+                    cfg = base.replace(**{**settings[name], "mppi.seed": ps})
                     policy = Planner(LearnedDynamics(pred), cost, cfg)
                 for task in tasks:
                     policy.reset()
@@ -300,7 +303,7 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
         j = np.asarray(res[name]["J"])
         d = j - ref
         variants.append({
-            "variant": name, "overrides": STUDY_VARIANTS.get(name, {}),
+            "variant": name, "overrides": settings.get(name, {}),
             "episode_cost": round(float(j.mean()), 4),
             "sem": round(float(j.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
             "diff_vs_pytorch_mppi": round(float(d.mean()), 4),
@@ -313,8 +316,24 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
             "episode_costs": [round(x, 4) for x in res[name]["J"]],
         })
     return {"benchmark": "planner_cost_study", "model": model_info, "n": n, "h": h,
+            "base_overrides": args.set,
             "tasks": tasks, "planner_seeds": pseeds, "runs_per_variant": k,
             "variants": variants}
+
+
+def parse_sets(items: list[str]) -> dict[str, Any]:
+    """``NAME=VALUE`` pairs -> {name: value} with YAML scalars (numbers, strings)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise PeelError(f"--set {item!r}: expected NAME=VALUE, e.g. cost.barrier_w=4")
+        out[name.strip()] = yaml.safe_load(value)
+    if out:
+        load_planner_config().replace(**out)  # unknown names / bad values fail here, named
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -336,7 +355,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--study-h", type=int, default=5, help="H for --cost-study")
     ap.add_argument("--variants", default="",
                     help="comma-separated --cost-study variants (default: all)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="--cost-study: planner parameter for every variant and pytorch_mppi "
+                         "(e.g. cost.barrier_w=4); repeatable")
     args = ap.parse_args(argv)
+    args.set = parse_sets(args.set)
     if args.tasks is None:
         args.tasks = 2 if args.quick else 10
     if args.repeats is None:

@@ -37,7 +37,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("cost.phi_fail", float, 2.0, "phi, not reached by t_max (Eq. 5)", min=0.0),
     ParamSpec("cost.w_togo", float, 14.0, "cost-to-go per q_ter - q_0 left at the horizon end",
               min=0.0),
-    ParamSpec("cost.barrier_w", float, 2.0, "barrier weight near the prewarning", min=0.0),
+    ParamSpec("cost.barrier_w", float, 8.0, "barrier weight near the prewarning", min=0.0),
     ParamSpec("cost.barrier_start_n", float, 15.0, "barrier onset |F|, N", min=0.0),
     ParamSpec("cost.barrier_stop_w", float, 10.0, "cost of a predicted prewarning", min=0.0),
     ParamSpec("mppi.n_samples", int, 50, "N sampled sequences (Alg. 2)", min=1, max=1_000_000),
@@ -58,7 +58,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("mppi.shift_fill", str, "last", "shift fill (Alg. 2 l.18-19)",
               choices=("last", "init")),
     ParamSpec("mppi.control_cost_scale", float, 0.1, "factor on Eq. 38's control term", min=0.0),
-    ParamSpec("mppi.control_cost_sigma", str, "estimate",
+    ParamSpec("mppi.control_cost_sigma", str, "sigma0",
               "Sigma in Eq. 38's control term: the re-estimated Sigma or sigma0",
               choices=("estimate", "sigma0")),
     ParamSpec("mppi.rollout_workers", int, 2, "threads rolling out sample chunks", min=1, max=64),
@@ -88,7 +88,7 @@ class CostConfig:
     phi_late: float = 1.0
     phi_fail: float = 2.0
     w_togo: float = 14.0
-    barrier_w: float = 2.0
+    barrier_w: float = 8.0
     barrier_start_n: float = 15.0
     barrier_stop_w: float = 10.0
     f_prewarn_n: float = 20.0
@@ -112,7 +112,7 @@ class MppiConfig:
     u_init: float = 1.0
     shift_fill: str = "last"
     control_cost_scale: float = 0.1
-    control_cost_sigma: str = "estimate"
+    control_cost_sigma: str = "sigma0"
     rollout_workers: int = 2
     min_samples_per_worker: int = 256
     iterations: int = 1

@@ -24,7 +24,7 @@ prewarning. Per predicted sample and per axis::
            + barrier_stop_w * [|F| >= f_prewarn_n]
 
 so a predicted force that would stop the task costs at least ``barrier_w + barrier_stop_w``
-per sample (12 by default, against ~0.5 for the largest Eq. 4 force term). The barrier is
+per sample (18 by default, against ~0.5 for the largest Eq. 4 force term). The barrier is
 not part of :func:`episode_cost`, which is the paper's J.
 
 In a rollout, positions are capped at q_ter and samples after the one that reaches q_ter cost
