@@ -250,7 +250,8 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
     n, h = args.study_n, args.study_h
     base = load_planner_config().replace(**{**args.set, "mppi.n_samples": n, "mppi.horizon": h})
     cost = Cost(base.cost)
-    tasks, pseeds = list(range(args.tasks)), list(range(args.seeds))
+    tasks = list(range(args.first_task, args.first_task + args.tasks))
+    pseeds = list(range(args.seeds))
     names = [*(args.variants.split(",") if args.variants else STUDY_VARIANTS), "pytorch_mppi"]
     settings = dict(STUDY_VARIANTS)
     for name in names[:-1]:
@@ -351,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="instead of the benchmark: J of peel variants vs pytorch_mppi over "
                          "--tasks x --seeds at (--study-n, --study-h)")
     ap.add_argument("--seeds", type=int, default=3, help="planner noise seeds (--cost-study)")
+    ap.add_argument("--first-task", type=int, default=0,
+                    help="--cost-study: simulator task seeds first-task .. first-task+tasks-1")
     ap.add_argument("--study-n", type=int, default=50, help="N for --cost-study")
     ap.add_argument("--study-h", type=int, default=5, help="H for --cost-study")
     ap.add_argument("--variants", default="",

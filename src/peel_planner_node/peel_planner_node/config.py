@@ -46,7 +46,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("mppi.steps_per_horizon_step", int, 5, "model steps per horizon step", min=1,
               max=1000),
     ParamSpec("mppi.sigma0", float, 1.0, "initial Sigma, (mm/s)^2 (Eq. 2)", min=1e-12),
-    ParamSpec("mppi.sigma_min", float, 0.25, "Sigma floor, (mm/s)^2 (Alg. 2 l.17)", min=1e-12),
+    ParamSpec("mppi.sigma_min", float, 0.5, "Sigma floor, (mm/s)^2 (Alg. 2 l.17)", min=1e-12),
     ParamSpec("mppi.sigma_max", float, 4.0, "Sigma ceiling, (mm/s)^2 (Alg. 2 l.17)", min=1e-12),
     ParamSpec("mppi.sigma_window", int, 10, "errors kept in D_Sigma (Alg. 2 l.15)", min=1,
               max=100_000),
@@ -61,6 +61,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("mppi.control_cost_sigma", str, "sigma0",
               "Sigma in Eq. 38's control term: the re-estimated Sigma or sigma0",
               choices=("estimate", "sigma0")),
+    ParamSpec("mppi.noise_correlation", float, 0.8,
+              "rho of eps_t = rho eps_(t-1) + sqrt(1 - rho^2) z_t over the horizon", min=0.0,
+              max=0.99),
     ParamSpec("mppi.rollout_workers", int, 2, "threads rolling out sample chunks", min=1, max=64),
     ParamSpec("mppi.min_samples_per_worker", int, 256, "smallest sample chunk per worker",
               min=1, max=1_000_000),
@@ -103,7 +106,7 @@ class MppiConfig:
     lam: float = 0.1
     steps_per_horizon_step: int = 5
     sigma0: float = 1.0
-    sigma_min: float = 0.25
+    sigma_min: float = 0.5
     sigma_max: float = 4.0
     sigma_window: int = 10
     sigma_min_count: int = 3
@@ -113,6 +116,7 @@ class MppiConfig:
     shift_fill: str = "last"
     control_cost_scale: float = 0.1
     control_cost_sigma: str = "sigma0"
+    noise_correlation: float = 0.8
     rollout_workers: int = 2
     min_samples_per_worker: int = 256
     iterations: int = 1
@@ -175,6 +179,7 @@ class PlannerConfig:
             u_min=p["mppi.u_min"], u_max=p["mppi.u_max"], u_init=p["mppi.u_init"],
             shift_fill=p["mppi.shift_fill"], control_cost_scale=p["mppi.control_cost_scale"],
             control_cost_sigma=p["mppi.control_cost_sigma"],
+            noise_correlation=p["mppi.noise_correlation"],
             rollout_workers=p["mppi.rollout_workers"],
             min_samples_per_worker=p["mppi.min_samples_per_worker"],
             iterations=p["mppi.iterations"], seed=p["mppi.seed"], dtype=p["mppi.dtype"],
@@ -203,6 +208,7 @@ class PlannerConfig:
             "mppi.u_min": m.u_min, "mppi.u_max": m.u_max, "mppi.u_init": m.u_init,
             "mppi.shift_fill": m.shift_fill, "mppi.control_cost_scale": m.control_cost_scale,
             "mppi.control_cost_sigma": m.control_cost_sigma,
+            "mppi.noise_correlation": m.noise_correlation,
             "mppi.rollout_workers": m.rollout_workers,
             "mppi.min_samples_per_worker": m.min_samples_per_worker,
             "mppi.iterations": m.iterations, "mppi.seed": m.seed, "mppi.dtype": m.dtype,

@@ -204,6 +204,9 @@ class FusedConvAttentionLSTM:
             .contiguous(),
             "a2w_t": mlp[2].weight.detach().t().contiguous(), "a2b": mlp[2].bias.detach(),
             "w1_aug": w1_aug,
+            # the same layer split: h_L part [hid, width] and v_{k+1} column, bias
+            "w1_h": w1[:, :hid].t().contiguous(), "w1_v": w1[:, hid].contiguous(),
+            "b1": reg[0].bias.detach().contiguous(),
             # later FC layers as one mm each on [y, 1] (bias as the last weight row); the last
             # one also carries the increment head's scale and shift (F_{k+1} = F_k + its output)
             "mid": [torch.cat([m.weight.detach().t(), m.bias.detach().unsqueeze(0)]).contiguous()
@@ -276,44 +279,42 @@ class FusedConvAttentionLSTM:
             if m not in gate_bufs:
                 gate_bufs[m] = (e(4, m, hid), e(3, m, hid), e(m, hid), e(m, hid))
             return gate_bufs[m]
-        # regressor activations [y, 1]: the ones column carries the next layer's bias
-        ys = [e(n, w["w1_aug"].shape[1] + 1)] + [e(n, wl.shape[1] + 1) for wl in w["mid"][:-1]]
+        # regressor activations [y, 1]: the ones column carries the next layer's bias; the
+        # first layer's v_{k+1} term and bias for all steps are one op per rollout (vt)
+        width1 = w["w1_h"].shape[1]
+        ys = [e(n, width1 + 1)] + [e(n, wl.shape[1] + 1) for wl in w["mid"][:-1]]
         for y in ys:
             y[:, -1] = 1.0
-        yf = e(n, 2)
-        hreg = e(n, hid + 2)
-        hreg[:, hid + 1] = 1.0
-        h_t = hreg[:, :hid]
-        wh4 = w["wh4"]
+        vt = e(s, n, width1)
+        h_t = e(n, hid)  # h_L of the window being finished
         z_int = zf[:, pad * n:(pad + 1) * n].unsqueeze(1)  # [4, 1, N, hid], broadcast
         z_bot = [zf[:, (pad + p) * n:(pad + p + 1) * n] for p in range(1, pad + 1)]
 
-        def cell(c: int, k0: int, out_h: torch.Tensor | None = None) -> dict:
-            """Views of one LSTM cell update over windows k0..k0+c-1 (rows of hs, cs)."""
+        def cell(c: int, k0: int, z: torch.Tensor | None,
+                 out_h: torch.Tensor | None = None) -> tuple:
+            """Views of one LSTM cell update over windows k0..k0+c-1 (rows of hs, cs), in the
+            order :meth:`_cells` reads them."""
             m = c * n
             g, sg, tg, tmp = gates(m)
             hv = hs[k0:k0 + c].view(m, hid)
-            return {"h4": hv.unsqueeze(0).expand(4, m, hid), "c": cs[k0:k0 + c].view(m, hid),
-                    "g": g, "g_ifo": g[:3], "g_g": g[3], "sg": sg,
-                    "s_i": sg[0], "s_f": sg[1], "s_o": sg[2], "tg": tg, "tmp": tmp, "wh4": wh4,
-                    "h_out": hv if out_h is None else out_h}
+            return (z, hv.unsqueeze(0).expand(4, m, hid), g, g[:3], sg, g[3], tg,
+                    cs[k0:k0 + c].view(m, hid), sg[1], sg[0], tmp, sg[2],
+                    hv if out_h is None else out_h)
 
         steps = []
         for k in range(s):
             c = min(depth, s - k)  # windows k..k+c-1 in flight (later ones are not needed)
             nint = min(c, depth - pad)
             nedge = c - nint
-            blk = cell(c, k)
-            g = blk["g"]
-            blk.update({
-                "g_int": g[:, :nint * n].view(4, nint, n, hid), "z_int": z_int,
-                "edge": (zf[:, :nedge * n], g[:, nint * n:c * n]) if nedge else None})
-            bottom = [(z_bot[p], cell(1, k, h_t if p == pad - 1 else None))
-                      for p in range(pad)]
-            steps.append({"x": flat.as_strided((n, h * 4), (row, 1), k * 4), "blk": blk,
-                          "bottom": bottom, "h_last": hs[k] if pad == 0 else None,
-                          "f_prev": bufn[:, h + k - 1, 2:4], "f_next": bufn[:, h + k, 2:4],
-                          "v_next": bufn[:, h + k, 1]})
+            blk = cell(c, k, None)
+            g = blk[2]
+            cells = [blk] + [cell(1, k, z_bot[p], h_t if p == pad - 1 else None)
+                             for p in range(pad)]
+            steps.append((flat.as_strided((n, h * 4), (row, 1), k * 4), blk[1], g,
+                          g[:, :nint * n].view(4, nint, n, hid),
+                          (zf[:, :nedge * n], g[:, nint * n:c * n]) if nedge else None,
+                          cells, hs[k] if pad == 0 else None, vt[k],
+                          bufn[:, h + k - 1, 2:4], bufn[:, h + k, 2:4]))
         ws = {
             "bufn": bufn, "steps": steps, "st": st, "pro": pro,
             "xpro": pro.view(-1).as_strided((depth, h * 4), (4, 1)), "pst": pst,
@@ -322,8 +323,8 @@ class FusedConvAttentionLSTM:
             "hs_zero": hs[depth:], "cs_zero": cs[depth:],
             "hp_b": hp.unsqueeze(1).expand(depth, n, hid),
             "cp_b": cp.unsqueeze(1).expand(depth, n, hid),
-            "hreg": hreg, "h_t": h_t, "h_v": hreg[:, hid],
-            "y": ys, "y_out": [y[:, :-1] for y in ys[:]] + [yf], "yf": yf,
+            "h_t": h_t, "vt": vt, "vn_t": bufn[:, h:, 1].t().unsqueeze(-1), "z_int": z_int,
+            "y": ys, "y_out": [y[:, :-1] for y in ys],
         }
         self._ws, self._ws_key = ws, key
         return ws
@@ -369,17 +370,19 @@ class FusedConvAttentionLSTM:
         torch.addmm(w["bx"], st["zz"], w["wx_t"], out=st["zout"])
 
     @staticmethod
-    def _cell(z: torch.Tensor | None, c: dict) -> None:
-        """One LSTM step (Eq. 11-16), gates i, f, o | g gate-major [4, m, hid], on the views
-        ``c``; ``z`` = the input projection [4, m, hid] (None: the gate pre-activations are
-        already in c["g"])."""
-        if z is not None:
-            torch.baddbmm(z, c["h4"], c["wh4"], out=c["g"])
-        torch.sigmoid(c["g_ifo"], out=c["sg"])
-        torch.tanh(c["g_g"], out=c["tg"])
-        c["c"].mul_(c["s_f"]).addcmul_(c["s_i"], c["tg"])
-        torch.tanh(c["c"], out=c["tmp"])
-        torch.mul(c["s_o"], c["tmp"], out=c["h_out"])
+    def _cells(cells: list[tuple], wh4: torch.Tensor) -> None:
+        """LSTM steps (Eq. 11-16) in sequence, gates i, f, o | g gate-major [4, m, hid], each
+        on the views of ``cell()``: z = the input projection [4, m, hid] (None: the gate
+        pre-activations are already in g)."""
+        sig, tanh, mul, baddbmm = torch.sigmoid, torch.tanh, torch.mul, torch.baddbmm
+        for z, h4, g, g_ifo, sg, g_g, tg, c, s_f, s_i, tmp, s_o, h_out in cells:
+            if z is not None:
+                baddbmm(z, h4, wh4, out=g)
+            sig(g_ifo, out=sg)
+            tanh(g_g, out=tg)
+            c.mul_(s_f).addcmul_(s_i, tg)
+            tanh(c, out=tmp)
+            mul(s_o, tmp, out=h_out)
 
     def rollout(self, window: np.ndarray, v: torch.Tensor, dt_s: float) -> torch.Tensor:
         """(q, fx, fz) [N, S, 3] from the last h rows ``window`` [h, 4] for ``v`` [N, S].
@@ -425,32 +428,31 @@ class FusedConvAttentionLSTM:
         ws["cs_pro"].copy_(ws["cp_b"])
         ws["hs_zero"].zero_()  # windows D.. start from h_0 = c_0 = 0
         ws["cs_zero"].zero_()
-        h_t, h_v, hreg, ys, y_out, mid, w1_aug = (ws["h_t"], ws["h_v"], ws["hreg"], ws["y"],
-                                                  ws["y_out"], w["mid"], w["w1_aug"])
-        layers = list(zip([*ys], mid, y_out[1:], strict=True))
-        st = ws["st"]
-        for step in ws["steps"]:
-            self._project_wave(step["x"], st)
-            blk = step["blk"]
-            # W_h h of all in-flight windows in one matmul, + the shared interior projection
-            # (broadcast) and the top-edge projections (same sums as addmm, measured faster
-            # than baddbmm with an expanded bias)
-            torch.bmm(blk["h4"], wh4, out=blk["g"])
-            blk["g_int"].add_(blk["z_int"])
-            if blk["edge"] is not None:
-                ze, ge = blk["edge"]
-                ge.add_(ze)
-            self._cell(None, blk)
-            for zb, cb in step["bottom"]:
-                self._cell(zb, cb)
-            if step["h_last"] is not None:
-                h_t.copy_(step["h_last"])
-            # regressor (3.1.3) on [h_L, v_{k+1}, 1]
-            h_v.copy_(step["v_next"])  # normalised v_{k+1}
-            torch.mm(hreg, w1_aug, out=y_out[0])
-            for y, wl, yo in layers:
+        h_t, ys, y_out, mid = ws["h_t"], ws["y"], ws["y_out"], w["mid"]
+        # first FC layer's v_{k+1} term + bias of every step: vt[k] = v_{k+1} w_v + b_1
+        torch.addcmul(w["b1"], ws["vn_t"], w["w1_v"], out=ws["vt"])
+        w1_h = w["w1_h"]
+        hidden_layers = list(zip(ys[:-1], mid[:-1], y_out[1:], strict=True))
+        y_last, w_last = ys[-1], mid[-1]
+        z_int, st = ws["z_int"], ws["st"]
+        for x, h4, g, g_int, edge, cells, h_last, vt_k, f_prev, f_next in ws["steps"]:
+            self._project_wave(x, st)
+            # W_h h of all in-flight windows in one batched matmul, + the shared interior
+            # projection (broadcast) and the top-edge projections
+            torch.bmm(h4, wh4, out=g)
+            g_int.add_(z_int)
+            if edge is not None:
+                edge[1].add_(edge[0])
+            self._cells(cells, wh4)
+            if h_last is not None:
+                h_t.copy_(h_last)
+            # regressor (3.1.3): [h_L, v_{k+1}] -> FC layers (the ones column of each y carries
+            # the next bias) -> F_{k+1} = F_k + y (the last layer holds the head's scale/shift)
+            torch.addmm(vt_k, h_t, w1_h, out=y_out[0])
+            for y, wl, yo in hidden_layers:
                 y.relu_()  # the ones column stays 1
                 torch.mm(y, wl, out=yo)
-            torch.add(step["f_prev"], y_out[-1], out=step["f_next"])
+            y_last.relu_()
+            torch.addmm(f_prev, y_last, w_last, out=f_next)
         forces = bufn[:, h:, 2:4] * in_std[2:4] + in_mean[2:4]
         return torch.cat([q.unsqueeze(-1), forces], dim=-1)

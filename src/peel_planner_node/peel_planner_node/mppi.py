@@ -64,6 +64,19 @@ def eq38_weights(cost: torch.Tensor, eps: torch.Tensor, u: torch.Tensor, sigma: 
     return torch.softmax(-(s - s.min()) / lam, dim=0)
 
 
+def ar1_matrix(h: int, rho: float, dtype: torch.dtype) -> torch.Tensor | None:
+    """[H, H] matrix A with (z A)_t = rho (z A)_{t-1} + sqrt(1 - rho^2) z_t, (z A)_0 = z_0:
+    unit-variance AR(1) noise from white z (None for rho = 0)."""
+    if rho == 0.0:
+        return None
+    a = torch.zeros((h, h), dtype=torch.float64)
+    c = math.sqrt(1.0 - rho * rho)
+    for t in range(h):
+        for s in range(t + 1):
+            a[s, t] = rho ** (t - s) * (1.0 if s == 0 else c)
+    return a.to(dtype)
+
+
 class Planner:
     """OL-MPPI (Algorithm 2) over a swappable :class:`~.dynamics.Dynamics`.
 
@@ -83,6 +96,7 @@ class Planner:
         self.set_dynamics(dynamics)
         self._gen = torch.Generator(device="cpu")
         self._noise = torch.empty((self.n, self.h), dtype=self.dtype)
+        self._ar = ar1_matrix(self.h, self.config.mppi.noise_correlation, self.dtype)
         self.last: dict[str, Any] = {}
         self.reset()
 
@@ -141,9 +155,11 @@ class Planner:
         m = self.config.mppi
         t_now, q_now = float(history.t[-1]), float(history.q[-1])
         with torch.inference_mode():
-            torch.randn((self.n, self.h), generator=self._gen, out=self._noise)
+            noise = torch.randn((self.n, self.h), generator=self._gen, out=self._noise)
+            if self._ar is not None:  # AR(1) over the horizon, unit variance per step
+                noise = noise @ self._ar
             u = self.U
-            v = torch.clamp(u + self._noise * math.sqrt(self.sigma), m.u_min, m.u_max)
+            v = torch.clamp(u + noise * math.sqrt(self.sigma), m.u_min, m.u_max)
             eps = v - u
             v_model = (v.unsqueeze(-1).expand(self.n, self.h, self.k).reshape(self.n, self.h * self.k)
                        if self.k > 1 else v)
