@@ -295,3 +295,21 @@ def test_planner_hands_rollout_workers_to_the_dynamics() -> None:
     planner.set_dynamics(other)
     assert other.workers == (3, 17)
     planner.set_dynamics(LinearDynamics())
+
+
+def test_correlated_noise_keeps_sigma_per_step_and_has_rho_lag_one() -> None:
+    """noise_correlation rho: eps_t = rho eps_(t-1) + sqrt(1 - rho^2) z_t, so every eps_t is
+    N(0, Sigma) as Eq. 2 wants, with correlation rho^|t - s| between horizon steps."""
+    cfg = config(**{"mppi.n_samples": 20000, "mppi.horizon": 5, "mppi.noise_correlation": 0.8,
+                    "mppi.u_min": -50.0, "mppi.u_max": 50.0, "mppi.sigma0": 0.7,
+                    "mppi.dtype": "float64"})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    planner.update(start_history())
+    eps = planner.last["eps"].numpy()
+    np.testing.assert_allclose(eps.var(axis=0), 0.7, rtol=0.05)
+    corr = np.corrcoef(eps.T)
+    for lag in (1, 2, 4):
+        np.testing.assert_allclose(np.diag(corr, lag), 0.8 ** lag, atol=0.03)
+    white = Planner(LinearDynamics(), Cost(cfg.cost), cfg.replace(**{"mppi.noise_correlation": 0.0}))
+    white.update(start_history())
+    assert np.abs(np.diag(np.corrcoef(white.last["eps"].numpy().T), 1)).max() < 0.03
