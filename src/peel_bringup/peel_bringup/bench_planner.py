@@ -7,7 +7,10 @@ For each (N, H) in (50, 5), (100, 5), (1000, 10) and each implementation:
   model (the shipped checkpoint when it exists, else a freshly initialised ``ours`` model: the
   JSON says which);
 * ``episode_cost``: mean J (Eq. 3) over the same simulator tasks (seeds 0..tasks-1) driven by that
-  planner, with ``t_cpl_s`` and outcomes beside it.
+  planner, each task with ``--seeds`` planner noise seeds (3: 30 episodes per case; peel's
+  ``mppi.seed`` and pytorch_mppi's torch seed), with ``t_cpl_s`` and outcomes beside it; the
+  ``goals`` hold the paired difference peel - pytorch_mppi and its standard error (with one seed
+  per task the difference of 10 episodes was mostly planner noise: +-0.4 per task).
 
 pytorch_mppi (PyPI ``pytorch-mppi``) drives the same model and the same cost: its state is the
 model's history window (h x 4) plus the time, flattened; one of its dynamics steps is one horizon
@@ -154,6 +157,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     base = load_planner_config()
     cases = CASES[:2] if args.quick else CASES
     seeds = list(range(args.tasks))
+    pseeds = list(range(args.seeds))
     env = PeelEnv(load_sim_config(), seed=0)
     try:
         env.reset(seed=1000)
@@ -167,21 +171,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             cfg = base.replace(**{"mppi.n_samples": n, "mppi.horizon": h})
             cost = Cost(cfg.cost)
             impls = {
-                "peel": lambda cfg=cfg, cost=cost: Planner(LearnedDynamics(pred), cost, cfg),
-                "pytorch_mppi": lambda cfg=cfg, cost=cost: TorchMppiPolicy(pred, cost, cfg),
+                "peel": lambda ps, cfg=cfg, cost=cost: Planner(
+                    LearnedDynamics(pred), cost, cfg.replace(**{"mppi.seed": ps})),
+                "pytorch_mppi": lambda ps, cfg=cfg, cost=cost: TorchMppiPolicy(pred, cost, cfg,
+                                                                               seed=ps),
             }
             for name, make in impls.items():
-                policy = make()
+                policy = make(0)
                 reps = max(5, args.repeats // (10 if n >= 1000 else 1))
                 med, p99 = timing(policy, hist, reps)
                 costs, tcpl, outcomes = [], [], []
-                for seed in seeds:
-                    policy.reset()
-                    traj = run_episode(env, policy, seed=seed)
-                    terms = episode_cost_terms(traj, cost)
-                    costs.append(float(terms["total"]))
-                    tcpl.append(traj.t_cpl)
-                    outcomes.append(traj.outcome)
+                for ps in pseeds:  # every task with every planner noise seed (paired)
+                    policy = make(ps)
+                    for seed in seeds:
+                        policy.reset()
+                        traj = run_episode(env, policy, seed=seed)
+                        terms = episode_cost_terms(traj, cost)
+                        costs.append(float(terms["total"]))
+                        tcpl.append(traj.t_cpl)
+                        outcomes.append(traj.outcome)
                 out_cases.append({
                     "impl": name, "n": n, "h": h, "median_ms": round(med, 3),
                     "p99_ms": round(p99, 3), "timing_calls": reps,
@@ -197,9 +205,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     goals = {}
     for n, h in cases:
         ours, theirs = by[("peel", n, h)], by[("pytorch_mppi", n, h)]
+        diff = np.asarray(ours["episode_costs"]) - np.asarray(theirs["episode_costs"])
         goals[f"{n}x{h}"] = {
             "faster_than_pytorch_mppi": ours["median_ms"] < theirs["median_ms"],
             "cost_not_higher": ours["episode_cost"] <= theirs["episode_cost"],
+            # paired over the same (task, planner seed) episodes
+            "cost_diff": round(float(diff.mean()), 4),
+            "cost_diff_sem": (round(float(diff.std(ddof=1) / np.sqrt(len(diff))), 4)
+                              if len(diff) > 1 else None),
             # J of a safety-stopped task (phi_fail = 2, short) can undercut a finished one:
             # read cost_not_higher together with how many tasks each finished
             "peel_done": ours["outcomes"].count("done"),
@@ -210,6 +223,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         goals["1000x10_median_le_100ms"] = by[("peel", 1000, 10)]["median_ms"] <= 100.0
     return {"benchmark": "planner", "model": model_info, "threads": args.threads,
             "device": "cpu", "torch": torch.__version__, "tasks": seeds,
+            "planner_seeds": pseeds, "episodes_per_case": len(seeds) * len(pseeds),
             "planner_config": base.as_dict(), "cases": out_cases, "goals": goals}
 
 
@@ -351,7 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cost-study", action="store_true",
                     help="instead of the benchmark: J of peel variants vs pytorch_mppi over "
                          "--tasks x --seeds at (--study-n, --study-h)")
-    ap.add_argument("--seeds", type=int, default=3, help="planner noise seeds (--cost-study)")
+    ap.add_argument("--seeds", type=int, default=3,
+                    help="planner noise seeds per task (both implementations, paired; 3)")
     ap.add_argument("--first-task", type=int, default=0,
                     help="--cost-study: simulator task seeds first-task .. first-task+tasks-1")
     ap.add_argument("--study-n", type=int, default=50, help="N for --cost-study")
@@ -365,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
     args.set = parse_sets(args.set)
     if args.tasks is None:
         args.tasks = 2 if args.quick else 10
+    if args.quick:
+        args.seeds = 1
     if args.repeats is None:
         args.repeats = 20 if args.quick else 100
     for name in ("tasks", "repeats", "threads", "seeds", "study_n", "study_h"):

@@ -1,0 +1,57 @@
+"""`peel bench planner` as a real process: the JSON it prints, its cost study, its errors.
+
+Small settings only (one task, one planner seed, few timing calls); no timing is asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+
+def _bench(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "peel_bringup.cli", "bench", "planner", *args],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_quick_benchmark_prints_both_implementations_with_paired_costs() -> None:
+    out = _bench("--quick", "--tasks", "1", "--repeats", "3")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    cases = {(c["impl"], c["n"], c["h"]): c for c in report["cases"]}
+    assert set(cases) == {(impl, n, h) for impl in ("peel", "pytorch_mppi")
+                          for n, h in ((50, 5), (100, 5))}
+    for case in cases.values():
+        assert case["median_ms"] > 0 and case["p99_ms"] >= case["median_ms"]
+        assert len(case["episode_costs"]) == 1 and case["outcomes"][0] in (
+            "done", "safety_stop", "timeout")
+    goal = report["goals"]["50x5"]
+    want = cases[("peel", 50, 5)]["episode_cost"] - cases[("pytorch_mppi", 50, 5)]["episode_cost"]
+    assert abs(goal["cost_diff"] - want) < 1e-3
+    assert report["planner_seeds"] == [0] and report["episodes_per_case"] == 1
+    assert report["planner_config"]["mppi"]["noise_correlation"] == 0.8
+
+
+def test_cost_study_takes_base_settings_and_ad_hoc_variants() -> None:
+    out = _bench("--cost-study", "--tasks", "1", "--seeds", "1", "--first-task", "3",
+                 "--variants", "peel,mppi.noise_correlation=0+mppi.sigma_min=0.25",
+                 "--set", "cost.barrier_w=4")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert report["tasks"] == [3] and report["base_overrides"] == {"cost.barrier_w": 4}
+    names = [v["variant"] for v in report["variants"]]
+    assert names == ["peel", "mppi.noise_correlation=0+mppi.sigma_min=0.25", "pytorch_mppi"]
+    assert report["variants"][1]["overrides"] == {"mppi.noise_correlation": 0,
+                                                  "mppi.sigma_min": 0.25}
+    assert report["variants"][2]["diff_vs_pytorch_mppi"] == 0.0
+
+
+def test_bad_settings_are_named_and_exit_non_zero() -> None:
+    out = _bench("--cost-study", "--tasks", "1", "--set", "mppi.noise_correlation=2")
+    assert out.returncode != 0
+    assert "mppi.noise_correlation" in out.stderr and "Traceback" not in out.stderr
+    out = _bench("--cost-study", "--tasks", "1", "--variants", "warp")
+    assert out.returncode != 0 and "unknown variant 'warp'" in out.stderr
+    out = _bench("--cost-study", "--tasks", "1", "--set", "novalue")
+    assert out.returncode != 0 and "expected NAME=VALUE" in out.stderr
