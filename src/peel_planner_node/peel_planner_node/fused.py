@@ -31,16 +31,20 @@ fewer operations, fewer FLOPs and no per-step allocation of the large intermedia
   processed their positions that see measured rows only; those are identical for all N
   samples, so they run with batch 1 (windows batched, one anti-diagonal per position) and the
   LSTM states are broadcast to the N samples.
-* **LSTM by hand, gate rows reordered** (this model's f, i, g, o -> i, f, o, g: one sigmoid over
-  the first three blocks), every intermediate written into preallocated buffers (``out=``).
-  torch's fused ``torch.lstm`` / ``nn.LSTM`` was measured slower here (docs/planner.md): it
-  recomputes the input projection of all positions and allocates per call.
-* **Regressor as bias-free matmuls**: the first FC layer reads [h_L, v_{k+1}, 1] and every later
-  layer [y, 1] (a ones column carries the next bias; ``addmm`` would first copy the bias into
-  its output); the last layer carries the increment head's scale and shift (in units of the
-  normalised force), so ``F_{k+1} = F_k + y`` is one ``add``. ReLU is ``relu_`` (``clamp_``
-  converted its scalar bound on every call). The scale-attention softmax skips its max-shift
-  when the logits are provably small (``|a| <= sum |W_2| + |b_2| <= 60``, tanh is bounded).
+* **LSTM by hand, gate-major** (this model's f, i, g, o reordered to i, f, o, g and laid out
+  [4, rows, hidden]: ``W_h h`` and ``W_x x + b`` are batched matmuls with one output block per
+  gate, so one sigmoid covers i, f, o and every elementwise op reads contiguous memory; on
+  column slices of a [rows, 4 hidden] matrix tanh was 4x slower at N = 50), every intermediate
+  written into preallocated buffers (``out=``). torch's fused ``torch.lstm`` / ``nn.LSTM`` was
+  measured slower here (docs/planner.md): it recomputes the input projection of all positions
+  and allocates per call.
+* **Biases inside the matmuls**: the input projection reads [weighted S, 1] (a ones column
+  carries b), every FC layer after the first reads [y, 1]; the first FC layer's v_{k+1} term and
+  bias are computed for all S steps in one op before the loop; the last layer carries the
+  increment head's scale and shift (in units of the normalised force), so ``F_{k+1} = F_k + y``
+  is one ``addmm`` into the rollout buffer. ReLU is ``relu_`` (``clamp_`` converted its scalar
+  bound on every call). The scale-attention softmax skips its max-shift when the logits are
+  provably small (``|a| <= sum |W_2| + |b_2| <= 60``, tanh is bounded).
 * **Workspace reused** between calls of the same (N, S): the first call allocates, later calls
   write into the same memory (a fresh multi-megabyte tensor per step cost more in page faults
   and bias copies than its matmul at N = 1000).
@@ -193,10 +197,12 @@ class FusedConvAttentionLSTM:
             "bx": ifog(lstm.w_x.bias.detach()).contiguous(),
             "wh_t": ifog(lstm.w_h.weight.detach()).t().contiguous(),
             "a1w_t": mlp[0].weight.detach().t().contiguous(), "a1b": mlp[0].bias.detach(),
-            # the same on [x, 1]: the bias as the last weight row (wavefront positions)
-            "a1w_aug": torch.cat([mlp[0].weight.detach().t(),
-                                  mlp[0].bias.detach().unsqueeze(0)]).contiguous(),
-            # gate-major [4, in, hid] (gates i, f, o, g) for the wavefront's batched matmuls
+            # [n_scales, n_scales * channels] 0/1: repeats each scale's weight over its channels
+            "scale_expand": torch.kron(torch.eye(len(convs), dtype=ref.dtype, device=ref.device),
+                                       torch.ones((1, c_out), dtype=ref.dtype,
+                                                  device=ref.device)),
+            # W_x and b on [x, 1] (the bias as the last weight row), gate-major [4, in + 1, hid]
+            # (gates i, f, o, g) for the wavefront's batched matmul
             "wx4_aug": torch.cat([ifog(lstm.w_x.weight.detach()).t(),
                                   ifog(lstm.w_x.bias.detach()).unsqueeze(0)])
             .view(-1, 4, hid).permute(1, 0, 2).contiguous(),
@@ -239,20 +245,20 @@ class FusedConvAttentionLSTM:
         row = (h + s) * 4
         flat = bufn.view(n, row)
         # per-step projections of the wavefront positions, position-major [nw, N, ...]
-        # zt: [nw, N, c_all + 1], the last column 1 (carries the biases of the attention's
-        # first layer and of W_x x + b into their matmuls: addmm would copy the bias first)
+        # zt: [nw, N, c_all + 1], the weighted S position-major; the last column 1 carries the
+        # bias of W_x x + b into its matmul (addmm would copy the bias into the output first)
         # zf: the projections gate-major [4, nw * N, hid] (gates i, f, o, g each contiguous)
         conv, zt, zf = e(n, nw * c_all), e(nw, n, c_all + 1), e(4, nw * n, hid)
         zt[..., c_all] = 1.0
         rows_w = nw * n
         a = e(rows_w, self.n_scales)
-        st = {"conv": conv, "conv_t": conv.view(n, nw, c_all).transpose(0, 1),
-              "zt_c": zt[..., :c_all], "zz": zt.view(rows_w, c_all + 1),
-              "zs": zt.as_strided((rows_w, self.n_scales, self.channels),
-                                  (c_all + 1, self.channels, 1)),
+        wexp = e(rows_w, c_all)
+        st = {"conv": conv,
+              "conv_rows": conv.view(rows_w, c_all), "conv3": conv.view(n, nw, c_all),
+              "wexp": wexp, "wexp3": wexp.view(n, nw, c_all),
+              "zt_c_t": zt[..., :c_all].transpose(0, 1),
               "zz4": zt.view(rows_w, c_all + 1).unsqueeze(0).expand(4, rows_w, c_all + 1),
-              "att": e(rows_w, a_hid), "a": a, "a_w": a.unsqueeze(-1), "esum": e(rows_w, 1),
-              "zero": torch.zeros((), dtype=dtype, device=dev), "zout": zf}
+              "att": e(rows_w, a_hid), "a": a, "esum": e(rows_w, 1), "zout": zf}
         # prologue: windows 0..D-1 over all positions, batch 1 each, window-major
         pro = torch.zeros((depth - 1 + h, 4), dtype=dtype, device=dev)
         pconv, zp = e(depth, length * c_all), e(depth * length, 4 * hid)
@@ -333,16 +339,19 @@ class FusedConvAttentionLSTM:
     def _project_wave(self, x: torch.Tensor, st: dict) -> None:
         """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of the wavefront positions.
 
-        The same sums as :meth:`_project` in another order: ReLU and the transpose to
-        position-major are one ``maximum`` into ``zt``, whose ones column makes the first
-        attention layer and the input projection bias-free matmuls.
+        The same sums as :meth:`_project`: the attention runs on the conv output's own
+        sample-major rows; the weighting (Eq. 10) writes the weighted S position-major into
+        ``zt``, whose ones column makes ``W_x x + b`` one bias-free batched matmul straight
+        into the gate-major projections. Every elementwise op reads contiguous memory (on
+        column slices they were up to 4x slower at N = 50).
         """
         w = self._w
         conv = st["conv"]
         torch.addmm(w["btoe_wave"], x, w["toe_wave"], out=conv)
-        torch.maximum(st["conv_t"], st["zero"], out=st["zt_c"])  # ReLU, position-major
+        conv.relu_()
         att, a, esum = st["att"], st["a"], st["esum"]
-        torch.mm(st["zz"], w["a1w_aug"], out=att)
+        # attention on the sample-major rows [N * nw, c_all] (contiguous)
+        torch.addmm(w["a1b"], st["conv_rows"], w["a1w_t"], out=att)
         att.tanh_()
         torch.addmm(w["a2b"], att, w["a2w_t"], out=a)
         if w["att_shift"]:
@@ -350,7 +359,10 @@ class FusedConvAttentionLSTM:
         a.exp_()
         torch.sum(a, dim=-1, keepdim=True, out=esum)
         a.div_(esum)
-        st["zs"].mul_(st["a_w"])
+        # each scale's weight repeated over its channels (an exact 0/1 matmul), then the
+        # weighted S written position-major into zt (Eq. 10): contiguous operands, one pass
+        torch.mm(a, w["scale_expand"], out=st["wexp"])
+        torch.mul(st["conv3"], st["wexp3"], out=st["zt_c_t"])
         torch.bmm(st["zz4"], w["wx4_aug"], out=st["zout"])
 
     def _project(self, x: torch.Tensor, toe: torch.Tensor, btoe: torch.Tensor,
