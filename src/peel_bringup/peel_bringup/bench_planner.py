@@ -227,22 +227,24 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "planner_config": base.as_dict(), "cases": out_cases, "goals": goals}
 
 
-#: --cost-study variants: peel's planner with one setting changed towards pytorch_mppi's
+#: --cost-study variants: peel with one default undone (an ablation of today's defaults, see
+#: docs/planner.md), peel configured as pytorch_mppi's algorithm, and two more iterations
 STUDY_VARIANTS: dict[str, dict[str, Any]] = {
     "peel": {},
-    "peel_sigma_fixed_1": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0},
-    "peel_fill_init": {"mppi.shift_fill": "init"},
-    "peel_sigma_fixed_1_fill_init": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0,
-                                     "mppi.shift_fill": "init"},
-    # without Eq. 38's control term: separates the noise level from the prior's strength
-    "peel_no_control_cost": {"mppi.control_cost_scale": 0.0},
-    "peel_sigma_fixed_1_no_control_cost": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0,
-                                           "mppi.control_cost_scale": 0.0},
-    # the control term with a fixed Sigma = sigma0 (a fixed control-cost weight R = lambda /
-    # sigma0), sampling still with the re-estimated Sigma
-    "peel_control_sigma0": {"mppi.control_cost_sigma": "sigma0"},
+    # white noise over the horizon instead of AR(1) with rho = 0.8
+    "peel_white_noise": {"mppi.noise_correlation": 0.0},
+    # Eq. 38's control term with the re-estimated Sigma (the paper's literal form)
     "peel_control_estimate": {"mppi.control_cost_sigma": "estimate"},
-    "peel_control_scale_0.05": {"mppi.control_cost_scale": 0.05},
+    # the Sigma floor of the first version
+    "peel_sigma_floor_0.25": {"mppi.sigma_min": 0.25},
+    # the first version's planner: all three above and the weaker barrier
+    "peel_first_version": {"mppi.noise_correlation": 0.0, "mppi.control_cost_sigma": "estimate",
+                           "mppi.sigma_min": 0.25, "cost.barrier_w": 2.0},
+    # pytorch_mppi's algorithm: fixed Sigma = sigma0, white noise, shift fill u_init
+    "peel_as_pytorch_mppi": {"mppi.sigma_min": 1.0, "mppi.sigma_max": 1.0,
+                             "mppi.noise_correlation": 0.0, "mppi.shift_fill": "init"},
+    # two MPPI updates per plan() (twice the rollouts)
+    "peel_iterations_2": {"mppi.iterations": 2},
 }
 
 

@@ -299,7 +299,7 @@ class FusedConvAttentionLSTM:
         def cell(c: int, k0: int, z: torch.Tensor | None,
                  out_h: torch.Tensor | None = None) -> tuple:
             """Views of one LSTM cell update over windows k0..k0+c-1 (rows of hs, cs), in the
-            order :meth:`_cells` reads them."""
+            order the rollout loop reads them."""
             m = c * n
             g, sg, tg, tmp = gates(m)
             hv = hs[k0:k0 + c].view(m, hid)
@@ -336,35 +336,6 @@ class FusedConvAttentionLSTM:
         return ws
 
     # ------------------------------------------------------------------ rollout
-    def _project_wave(self, x: torch.Tensor, st: dict) -> None:
-        """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of the wavefront positions.
-
-        The same sums as :meth:`_project`: the attention runs on the conv output's own
-        sample-major rows; the weighting (Eq. 10) writes the weighted S position-major into
-        ``zt``, whose ones column makes ``W_x x + b`` one bias-free batched matmul straight
-        into the gate-major projections. Every elementwise op reads contiguous memory (on
-        column slices they were up to 4x slower at N = 50).
-        """
-        w = self._w
-        conv = st["conv"]
-        torch.addmm(w["btoe_wave"], x, w["toe_wave"], out=conv)
-        conv.relu_()
-        att, a, esum = st["att"], st["a"], st["esum"]
-        # attention on the sample-major rows [N * nw, c_all] (contiguous)
-        torch.addmm(w["a1b"], st["conv_rows"], w["a1w_t"], out=att)
-        att.tanh_()
-        torch.addmm(w["a2b"], att, w["a2w_t"], out=a)
-        if w["att_shift"]:
-            a.sub_(a.amax(dim=-1, keepdim=True))
-        a.exp_()
-        torch.sum(a, dim=-1, keepdim=True, out=esum)
-        a.div_(esum)
-        # each scale's weight repeated over its channels (an exact 0/1 matmul), then the
-        # weighted S written position-major into zt (Eq. 10): contiguous operands, one pass
-        torch.mm(a, w["scale_expand"], out=st["wexp"])
-        torch.mul(st["conv3"], st["wexp3"], out=st["zt_c_t"])
-        torch.bmm(st["zz4"], w["wx4_aug"], out=st["zout"])
-
     def _project(self, x: torch.Tensor, toe: torch.Tensor, btoe: torch.Tensor,
                  st: dict) -> None:
         """Conv (Eq. 7) + attention (Eq. 8-10) + ``W_x x + b`` of the positions in ``toe``."""
@@ -380,21 +351,6 @@ class FusedConvAttentionLSTM:
         e = torch.exp(a - a.amax(dim=-1, keepdim=True)) if w["att_shift"] else a.exp_()
         st["zs"].mul_((e / e.sum(dim=-1, keepdim=True)).unsqueeze(-1))
         torch.addmm(w["bx"], st["zz"], w["wx_t"], out=st["zout"])
-
-    @staticmethod
-    def _cells(cells: list[tuple], wh4: torch.Tensor) -> None:
-        """LSTM steps (Eq. 11-16) in sequence, gates i, f, o | g gate-major [4, m, hid], each
-        on the views of ``cell()``: z = the input projection [4, m, hid] (None: the gate
-        pre-activations are already in g)."""
-        sig, tanh, mul, baddbmm = torch.sigmoid, torch.tanh, torch.mul, torch.baddbmm
-        for z, h4, g, g_ifo, sg, g_g, tg, c, s_f, s_i, tmp, s_o, h_out in cells:
-            if z is not None:
-                baddbmm(z, h4, wh4, out=g)
-            sig(g_ifo, out=sg)
-            tanh(g_g, out=tg)
-            c.mul_(s_f).addcmul_(s_i, tg)
-            tanh(c, out=tmp)
-            mul(s_o, tmp, out=h_out)
 
     def rollout(self, window: np.ndarray, v: torch.Tensor, dt_s: float) -> torch.Tensor:
         """(q, fx, fz) [N, S, 3] from the last h rows ``window`` [h, 4] for ``v`` [N, S].
@@ -447,24 +403,60 @@ class FusedConvAttentionLSTM:
         hidden_layers = list(zip(ys[:-1], mid[:-1], y_out[1:], strict=True))
         y_last, w_last = ys[-1], mid[-1]
         z_int, st = ws["z_int"], ws["st"]
+        # the loop body uses local names only: at N = 50 the Python around its ~43 small torch
+        # calls per step is a measurable part of a plan
+        conv, conv_rows, conv3, att, a, esum = (st["conv"], st["conv_rows"], st["conv3"],
+                                                st["att"], st["a"], st["esum"])
+        wexp, wexp3, zt_c_t, zz4, zout = (st["wexp"], st["wexp3"], st["zt_c_t"], st["zz4"],
+                                          st["zout"])
+        btoe, toe, a1b, a1w_t, a2b, a2w_t = (w["btoe_wave"], w["toe_wave"], w["a1b"],
+                                             w["a1w_t"], w["a2b"], w["a2w_t"])
+        scale_expand, wx4_aug, att_shift = w["scale_expand"], w["wx4_aug"], w["att_shift"]
+        mm, bmm, baddbmm = torch.mm, torch.bmm, torch.baddbmm
         for x, h4, g, g_int, edge, cells, h_last, vt_k, f_prev, f_next in ws["steps"]:
-            self._project_wave(x, st)
+            # conv (Eq. 7) + scale attention (Eq. 8-10) on the conv output's own sample-major
+            # rows; the weighting (Eq. 10, an exact 0/1 expansion of the scale weights) writes
+            # the weighted S position-major into zt, whose ones column makes W_x x + b one
+            # bias-free batched matmul straight into the gate-major projections
+            addmm(btoe, x, toe, out=conv)
+            conv.relu_()
+            addmm(a1b, conv_rows, a1w_t, out=att)
+            att.tanh_()
+            addmm(a2b, att, a2w_t, out=a)
+            if att_shift:
+                a.sub_(a.amax(dim=-1, keepdim=True))
+            a.exp_()
+            torch.sum(a, dim=-1, keepdim=True, out=esum)
+            a.div_(esum)
+            mm(a, scale_expand, out=wexp)
+            mul(conv3, wexp3, out=zt_c_t)
+            bmm(zz4, wx4_aug, out=zout)
             # W_h h of all in-flight windows in one batched matmul, + the shared interior
             # projection (broadcast) and the top-edge projections
-            torch.bmm(h4, wh4, out=g)
+            bmm(h4, wh4, out=g)
             g_int.add_(z_int)
             if edge is not None:
                 edge[1].add_(edge[0])
-            self._cells(cells, wh4)
+            # the LSTM cell updates of this step (Eq. 11-16), gates i, f, o | g gate-major
+            # [4, m, hid]: the wavefront block (z None: its pre-activations are in g already),
+            # then window k's bottom-edge positions (z = their input projection)
+            for z, hh4, gg, g_ifo, sg, g_g, tg, c, s_f, s_i, tmp, s_o, h_out in cells:
+                if z is not None:
+                    baddbmm(z, hh4, wh4, out=gg)
+                sig(g_ifo, out=sg)
+                tanh(g_g, out=tg)
+                c.mul_(s_f).addcmul_(s_i, tg)
+                tanh(c, out=tmp)
+                mul(s_o, tmp, out=h_out)
             if h_last is not None:
                 h_t.copy_(h_last)
             # regressor (3.1.3): [h_L, v_{k+1}] -> FC layers (the ones column of each y carries
             # the next bias) -> F_{k+1} = F_k + y (the last layer holds the head's scale/shift)
-            torch.addmm(vt_k, h_t, w1_h, out=y_out[0])
+            addmm(vt_k, h_t, w1_h, out=y_out[0])
             for y, wl, yo in hidden_layers:
                 y.relu_()  # the ones column stays 1
-                torch.mm(y, wl, out=yo)
+                mm(y, wl, out=yo)
             y_last.relu_()
-            torch.addmm(f_prev, y_last, w_last, out=f_next)
+            addmm(f_prev, y_last, w_last, out=f_next)
         forces = bufn[:, h:, 2:4] * in_std[2:4] + in_mean[2:4]
         return torch.cat([q.unsqueeze(-1), forces], dim=-1)
