@@ -20,15 +20,17 @@ if [ -z "$PY" ]; then
 fi
 stamp=".venv/.peel-setup-stamp"
 hash="$(cat requirements.txt requirements-dev.txt src/*/setup.py src/*/package.xml | sha256sum | cut -c1-16)"
-if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel ]; then
-  exit 0
+if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel ]; }; then
+  echo "setup: creating .venv with $PY and installing pinned dependencies (first run takes a minute)" >&2
+  [ -x .venv/bin/python ] || "$PY" -m venv .venv
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip setuptools wheel
+  .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-dev.txt
+  for pkg in peel_msgs_py peel_sim_node model_learner_node peel_planner_node peel_bringup; do
+    .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
+  done
+  echo "$hash" > "$stamp"
+  echo "setup: done" >&2
 fi
-echo "setup: creating .venv with $PY and installing pinned dependencies (first run takes a minute)" >&2
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
-.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip setuptools wheel
-.venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-dev.txt
-for pkg in peel_msgs_py peel_sim_node model_learner_node peel_planner_node peel_bringup; do
-  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
-done
-echo "$hash" > "$stamp"
-echo "setup: done" >&2
+# the planner's C++ model-step loop: compiled once (~25 s), then cached; optional (without a
+# compiler the Python loop runs, same results), so a failure here does not stop setup
+.venv/bin/python -m peel_planner_node.native_loop || true

@@ -57,6 +57,46 @@ def test_learned_rollout_matches_stepwise_predict(arch: str) -> None:
 
 
 @pytest.mark.parametrize("arch", ["ours", "cnn-lstm"])
+def test_native_loop_is_bit_identical_to_the_python_loop(arch: str) -> None:
+    """The C++ model-step loop (csrc/rollout_loop.cpp) makes the same ATen calls as the Python
+    loop: equal bit for bit, over S > h, the wavefront's cut-off windows, a reused workspace,
+    chunks on worker threads (the GIL is released) and after an in-place weight update."""
+    from peel_planner_node import native_loop
+
+    if native_loop.load() is None:  # no compiler here: the Python loop is what runs
+        pytest.skip(f"C++ loop unavailable: {native_loop.status()['reason']}")
+    torch.manual_seed(7)
+    pred = ForcePredictor(ModelConfig().with_arch(arch), NORM)
+    hist = history(25, seed=8)
+    fast, slow = LearnedDynamics(pred), LearnedDynamics(pred, native=False)
+    chunked = LearnedDynamics(pred, workers=2, min_chunk=3)
+    for n, s in ((6, 30), (5, 7), (6, 30), (7, 1)):
+        v = torch.rand(n, s) * 5.0
+        want = slow.rollout(hist, v)
+        assert torch.equal(fast.rollout(hist, v), want)
+        assert torch.equal(chunked.rollout(hist, v), want)
+    assert fast.fused._ws["native"] is not None and slow.fused._ws["native"] is None
+    with torch.no_grad():
+        pred.body.lstm.w_h.weight.mul_(0.9)
+    v = torch.rand(4, 12) * 5.0
+    assert torch.equal(fast.rollout(hist, v), slow.rollout(hist, v))
+
+
+def test_native_loop_can_be_switched_off() -> None:
+    """PEEL_NATIVE_LOOP=0 (a fresh process): the Python loop runs and status() says why."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("from peel_planner_node import native_loop as m; import json; "
+            "print(m.load() is None, json.dumps(m.status()))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, "PEEL_NATIVE_LOOP": "0"}, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("True") and "PEEL_NATIVE_LOOP=0" in out.stdout
+
+
+@pytest.mark.parametrize("arch", ["ours", "cnn-lstm"])
 def test_rollout_workers_give_bit_identical_results(arch: str) -> None:
     """Sample chunks rolled out on worker threads (each with its own workspace) equal one
     rollout of the whole batch bit for bit, for uneven chunks and repeated calls; a batch below

@@ -8,6 +8,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={package_name: ["csrc/*.cpp"]},  # the C++ rollout loop, built on first use
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/peel_planner_node']),
         ('share/peel_planner_node', ['package.xml']),

@@ -221,7 +221,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     goals["50x5_median_le_5ms"] = by[("peel", 50, 5)]["median_ms"] <= 5.0
     if ("peel", 1000, 10) in by:
         goals["1000x10_median_le_100ms"] = by[("peel", 1000, 10)]["median_ms"] <= 100.0
+    from peel_planner_node.native_loop import status as native_status
+
     return {"benchmark": "planner", "model": model_info, "threads": args.threads,
+            "native_loop": native_status(),
             "device": "cpu", "torch": torch.__version__, "tasks": seeds,
             "planner_seeds": pseeds, "episodes_per_case": len(seeds) * len(pseeds),
             "planner_config": base.as_dict(), "cases": out_cases, "goals": goals}

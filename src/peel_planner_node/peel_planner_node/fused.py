@@ -90,8 +90,10 @@ class FusedConvAttentionLSTM:
         width = max(int(c.kernel_size[0]) + pad - int(c.padding[0]) for c in convs)
         return width <= int(predictor.h)  # at least one interior position (the wavefront)
 
-    def __init__(self, predictor: Any) -> None:
+    def __init__(self, predictor: Any, *, native: bool = True) -> None:
         self.predictor = predictor
+        # the model-step loop in C++ (native_loop.py), bit-identical; Python when unavailable
+        self.native = bool(native)
         body = predictor.body
         self.h = int(predictor.h)
         convs = list(body.conv.convs)
@@ -322,6 +324,7 @@ class FusedConvAttentionLSTM:
                           cells, hs[k] if pad == 0 else None, vt[k],
                           bufn[:, h + k - 1, 2:4], bufn[:, h + k, 2:4]))
         ws = {
+            "native": self._native_loop(steps, st, w, h_t, ys, z_int) if self.native else None,
             "bufn": bufn, "steps": steps, "st": st, "pro": pro,
             "xpro": pro.view(-1).as_strided((depth, h * 4), (4, 1)), "pst": pst,
             "prologue": prologue, "hp": hp, "cp": cp, "hs": hs, "cs": cs,
@@ -334,6 +337,37 @@ class FusedConvAttentionLSTM:
         }
         self._ws, self._ws_key = ws, key
         return ws
+
+    @staticmethod
+    def _native_loop(steps: list, st: dict, w: dict, h_t: torch.Tensor, ys: list,
+                     z_int: torch.Tensor) -> Any | None:
+        """The C++ loop bound to this workspace's tensors (None: the Python loop runs)."""
+        from .native_loop import load
+
+        module = load()
+        if module is None:
+            return None
+        y_out = [y[:, :-1] for y in ys]
+        consts = [st["conv"], st["conv_rows"], st["conv3"], st["att"], st["a"], st["esum"],
+                  st["wexp"], st["wexp3"], st["zt_c_t"], st["zz4"], st["zout"],
+                  w["btoe_wave"], w["toe_wave"], w["a1b"], w["a1w_t"], w["a2b"], w["a2w_t"],
+                  w["scale_expand"], w["wx4_aug"], w["wh4"], z_int, h_t, w["w1_h"], y_out[0],
+                  ys[-1], w["mid"][-1]]
+        for y, wl, yo in zip(ys[:-1], w["mid"][:-1], y_out[1:], strict=True):
+            consts += [y, wl, yo]
+        none = torch.empty(0)
+        flat, flags = [], []
+        for x, h4, g, g_int, edge, cells, h_last, vt_k, f_prev, f_next in steps:
+            t = [x, h4, g, g_int, edge[0] if edge is not None else none,
+                 edge[1] if edge is not None else none,
+                 h_last if h_last is not None else none, vt_k, f_prev, f_next]
+            f = [int(edge is not None), int(h_last is not None)]
+            for cell in cells:
+                t += [cell[0] if cell[0] is not None else none, *cell[1:]]
+                f.append(int(cell[0] is not None))
+            flat.append(t)
+            flags.append(f)
+        return module.RolloutLoop(consts, flat, flags, bool(w["att_shift"]))
 
     # ------------------------------------------------------------------ rollout
     def _project(self, x: torch.Tensor, toe: torch.Tensor, btoe: torch.Tensor,
@@ -403,6 +437,10 @@ class FusedConvAttentionLSTM:
         hidden_layers = list(zip(ys[:-1], mid[:-1], y_out[1:], strict=True))
         y_last, w_last = ys[-1], mid[-1]
         z_int, st = ws["z_int"], ws["st"]
+        if ws["native"] is not None:  # the same loop in C++ (csrc/rollout_loop.cpp)
+            ws["native"].run()
+            forces = bufn[:, h:, 2:4] * in_std[2:4] + in_mean[2:4]
+            return torch.cat([q.unsqueeze(-1), forces], dim=-1)
         # the loop body uses local names only: at N = 50 the Python around its ~43 small torch
         # calls per step is a measurable part of a plan
         conv, conv_rows, conv3, att, a, esum = (st["conv"], st["conv_rows"], st["conv3"],

@@ -1,0 +1,80 @@
+"""The C++ model-step loop of the fused rollout (``csrc/rollout_loop.cpp``), built on first use.
+
+Why: at N = 50, H = 5 a plan makes ~1075 small torch calls, and the Python around each one
+(~0.4 us) is ~10 % of the plan (docs/planner.md, third round). The C++ loop makes the same
+ATen calls in the same order on the same tensors, so its results are bit-identical to the
+Python loop (``test_planner_dynamics``); the GIL is released while it runs.
+
+It is compiled with ``torch.utils.cpp_extension.load_inline`` (g++ and ninja; ~25 s the first
+time, then cached in torch's extension directory, ``TORCH_EXTENSIONS_DIR`` to move it). When it
+cannot be built, or ``PEEL_NATIVE_LOOP=0`` is set, the Python loop is used; :func:`status` says
+which and why.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+_LOG = logging.getLogger(__name__)
+_SOURCE = Path(__file__).with_name("csrc") / "rollout_loop.cpp"
+_LOCK = threading.Lock()
+_STATE: dict[str, Any] = {"module": None, "tried": False, "reason": "not built yet"}
+
+
+def _ninja_on_path() -> None:
+    """torch looks for ``ninja`` on PATH; a venv's own bin directory may not be on it."""
+    if shutil.which("ninja") is None:
+        bindir = str(Path(sys.executable).parent)
+        if shutil.which("ninja", path=bindir) is not None:
+            os.environ["PATH"] = bindir + os.pathsep + os.environ.get("PATH", "")
+
+
+def load() -> Any | None:
+    """The compiled module (with ``RolloutLoop``), or None when disabled or not buildable."""
+    if os.environ.get("PEEL_NATIVE_LOOP", "1") == "0":
+        _STATE["reason"] = "disabled by PEEL_NATIVE_LOOP=0"
+        return None
+    with _LOCK:
+        if _STATE["tried"]:
+            return _STATE["module"]
+        _STATE["tried"] = True
+        try:
+            from torch.utils.cpp_extension import load_inline
+
+            _ninja_on_path()
+            _STATE["module"] = load_inline(
+                name="peel_rollout_loop", cpp_sources=[_SOURCE.read_text()], functions=None,
+                extra_cflags=["-O2"], verbose=False)
+            _STATE["reason"] = "built"
+        except Exception as exc:  # no compiler, no ninja, no headers: the Python loop runs
+            _STATE["reason"] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1:]}"
+            _LOG.warning("peel: C++ rollout loop unavailable (%s); using the Python loop",
+                         _STATE["reason"])
+    return _STATE["module"]
+
+
+def status() -> dict[str, Any]:
+    """{'native': bool, 'reason': str} of the last :func:`load`."""
+    return {"native": _STATE["module"] is not None, "reason": _STATE["reason"]}
+
+
+def main() -> int:
+    """``python -m peel_planner_node.native_loop``: build (or find) the loop, print the status."""
+    import time
+
+    t0 = time.perf_counter()
+    load()
+    st = status()
+    print(f"setup: planner C++ rollout loop: {st['reason']} ({time.perf_counter() - t0:.1f} s)",
+          file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
