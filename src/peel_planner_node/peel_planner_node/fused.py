@@ -48,6 +48,10 @@ fewer operations, fewer FLOPs and no per-step allocation of the large intermedia
 * **Workspace reused** between calls of the same (N, S): the first call allocates, later calls
   write into the same memory (a fresh multi-megabyte tensor per step cost more in page faults
   and bias copies than its matmul at N = 1000).
+* **The model-step loop in C++** when it can be built (``native_loop.py``,
+  ``csrc/rollout_loop.cpp``): the same ATen calls on the same workspace tensors, bound once per
+  workspace, so the results are bit-identical; the Python loop below is the fallback and the
+  reference (``test_planner_dynamics`` compares them bit for bit).
 """
 
 from __future__ import annotations
