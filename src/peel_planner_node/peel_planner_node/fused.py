@@ -343,6 +343,18 @@ class FusedConvAttentionLSTM:
         return ws
 
     @staticmethod
+    def _lstm_pointwise(g_ifo: torch.Tensor, sg: torch.Tensor, g_g: torch.Tensor,
+                        tg: torch.Tensor, c: torch.Tensor, s_f: torch.Tensor, s_i: torch.Tensor,
+                        tmp: torch.Tensor, s_o: torch.Tensor, h_out: torch.Tensor) -> None:
+        """Eq. 11-16 after the gate pre-activations: sigma(i, f, o), tanh(g), c = f c + i g,
+        h = o tanh(c), all into preallocated views."""
+        torch.sigmoid(g_ifo, out=sg)
+        torch.tanh(g_g, out=tg)
+        c.mul_(s_f).addcmul_(s_i, tg)
+        torch.tanh(c, out=tmp)
+        torch.mul(s_o, tmp, out=h_out)
+
+    @staticmethod
     def _native_loop(steps: list, st: dict, w: dict, h_t: torch.Tensor, ys: list,
                      z_int: torch.Tensor) -> Any | None:
         """The C++ loop bound to this workspace's tensors (None: the Python loop runs)."""
@@ -422,14 +434,10 @@ class FusedConvAttentionLSTM:
         hp, cp = ws["hp"], ws["cp"]
         hp.zero_()
         cp.zero_()
-        sig, tanh, mul, addmm = torch.sigmoid, torch.tanh, torch.mul, torch.addmm
+        mul, addmm, pointwise = torch.mul, torch.addmm, self._lstm_pointwise
         for z, hh, cc, g, g_ifo, g_g, sg, s_i, s_f, s_o, tg, tmp in ws["prologue"]:
             addmm(z, hh, wh_t, out=g)
-            sig(g_ifo, out=sg)
-            tanh(g_g, out=tg)
-            cc.mul_(s_f).addcmul_(s_i, tg)
-            tanh(cc, out=tmp)
-            mul(s_o, tmp, out=hh)
+            pointwise(g_ifo, sg, g_g, tg, cc, s_f, s_i, tmp, s_o, hh)
         ws["hs_pro"].copy_(ws["hp_b"])
         ws["cs_pro"].copy_(ws["cp_b"])
         ws["hs_zero"].zero_()  # windows D.. start from h_0 = c_0 = 0
@@ -485,11 +493,7 @@ class FusedConvAttentionLSTM:
             for z, hh4, gg, g_ifo, sg, g_g, tg, c, s_f, s_i, tmp, s_o, h_out in cells:
                 if z is not None:
                     baddbmm(z, hh4, wh4, out=gg)
-                sig(g_ifo, out=sg)
-                tanh(g_g, out=tg)
-                c.mul_(s_f).addcmul_(s_i, tg)
-                tanh(c, out=tmp)
-                mul(s_o, tmp, out=h_out)
+                pointwise(g_ifo, sg, g_g, tg, c, s_f, s_i, tmp, s_o, h_out)
             if h_last is not None:
                 h_t.copy_(h_last)
             # regressor (3.1.3): [h_L, v_{k+1}] -> FC layers (the ones column of each y carries
