@@ -10,14 +10,17 @@ One :meth:`Planner.plan` call is one pass of Algorithm 2's inner loop:
    their mean square, ``Sigma = mean(e^2)``, clamped to [sigma_min, sigma_max]; until
    ``sigma_min_count`` errors exist Sigma stays sigma0. The mean square about zero (not the
    sample variance) is used because Eq. 2 models v ~ N(u, Sigma): a bias of v* is spread too;
-3. (lines 4-13) N sequences eps^k ~ N(0, Sigma) over the H horizon steps;
+3. (lines 4-13) N sequences eps^k over the H horizon steps, each eps^k_t ~ N(0, Sigma);
+   with ``noise_correlation`` rho > 0 the steps of one sequence are AR(1)-correlated,
+   eps_t = rho eps_{t-1} + sqrt(1 - rho^2) z_t (:func:`ar1_matrix`; rho = 0: white, the paper);
    ``v^k = clip(u + eps^k, u_min, u_max)`` and eps^k is replaced by the clipped ``v^k - u`` (so
    the control term sees the perturbation actually applied); each v^k_t is held for
    ``steps_per_horizon_step`` model steps of dt (default 5 x 0.1 s = one 0.5 s control period)
    and the whole batch is rolled out at once through the Dynamics; J^k = sum of L_t + barrier
    + phi (:class:`~.cost.Cost`);
 4. (line 13, Eq. 38) ``S^k = J^k + c lambda/2 sum_t (u_t Sigma^-1 u_t + 2 eps^k_t Sigma^-1 u_t)``
-   with c = ``control_cost_scale`` (1 in the paper), and
+   with c = ``control_cost_scale`` (1 in the paper) and Sigma here = sigma0
+   (``control_cost_sigma: sigma0``, a fixed control cost) or the re-estimate (``estimate``), and
    ``omega^k = exp(-(S^k - min_j S^j) / lambda) / eta`` -- subtracting the minimum before the
    exponential (the "min-cost shift") leaves omega unchanged and keeps exp() finite;
 5. (line 14, Eq. 31) ``U = sum_k omega^k v^k`` -- already inside the speed limits because each
