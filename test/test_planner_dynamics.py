@@ -226,3 +226,22 @@ def test_oracle_adapter_checks_shape() -> None:
 
     with pytest.raises(PeelError, match="shape"):
         OracleDynamics(Bad()).rollout(history(), torch.ones(2, 4))
+
+
+def test_native_loop_build_survives_a_leftover_torch_lock() -> None:
+    """A killed build leaves torch's lock file behind, and torch would wait for it forever; the
+    loader (holding its own OS lock) removes it and loads."""
+    import os
+    import subprocess
+    import sys
+
+    from peel_planner_node import native_loop
+
+    if native_loop.load() is None:
+        pytest.skip(f"C++ loop unavailable: {native_loop.status()['reason']}")
+    leftover = native_loop._build_dir() / "lock"
+    leftover.touch()
+    out = subprocess.run([sys.executable, "-m", "peel_planner_node.native_loop"],
+                         capture_output=True, text=True, timeout=300, env=dict(os.environ))
+    assert out.returncode == 0 and "rollout loop: built" in out.stderr, out.stderr
+    assert not leftover.exists()

@@ -6,9 +6,14 @@ ATen calls in the same order on the same tensors, so its results are bit-identic
 Python loop (``test_planner_dynamics``); the GIL is released while it runs.
 
 It is compiled with ``torch.utils.cpp_extension.load_inline`` (g++ and ninja; ~25 s the first
-time, then cached in torch's extension directory, ``TORCH_EXTENSIONS_DIR`` to move it). When it
-cannot be built, or ``PEEL_NATIVE_LOOP=0`` is set, the Python loop is used; :func:`status` says
-which and why.
+time, then cached under torch's extension directory, ``TORCH_EXTENSIONS_DIR`` to move it, in a
+folder per Python and torch version). When it cannot be built, or ``PEEL_NATIVE_LOOP=0`` is set,
+the Python loop is used; :func:`status` says which and why.
+
+Builds are serialised with an OS file lock (``fcntl.flock``, released when a process dies).
+torch's own lock is a plain file that a killed build leaves behind, after which every later
+build waits for it forever; while holding ours, a torch lock file in the folder can only be
+such a leftover, and it is removed.
 """
 
 from __future__ import annotations
@@ -35,6 +40,36 @@ def _ninja_on_path() -> None:
             os.environ["PATH"] = bindir + os.pathsep + os.environ.get("PATH", "")
 
 
+def _build_dir() -> Path:
+    import torch
+
+    base = os.environ.get("TORCH_EXTENSIONS_DIR") or str(
+        Path.home() / ".cache" / "torch_extensions")
+    tag = f"py{sys.version_info[0]}{sys.version_info[1]}_torch{torch.__version__}"
+    return Path(base) / f"peel_rollout_loop_{tag.replace('+', '_').replace('.', '_')}"
+
+
+def _build() -> Any:
+    from torch.utils.cpp_extension import load_inline
+
+    _ninja_on_path()
+    build_dir = _build_dir()
+    build_dir.mkdir(parents=True, exist_ok=True)
+    with open(build_dir / "peel.lock", "w") as lock:
+        try:
+            import fcntl
+
+            fcntl.flock(lock, fcntl.LOCK_EX)  # waits for another process's build
+        except ImportError:  # pragma: no cover - not POSIX: torch's own lock only
+            pass
+        stale = build_dir / "lock"  # torch's FileBaton file: left by a killed build
+        if stale.exists():
+            stale.unlink()
+        return load_inline(name="peel_rollout_loop", cpp_sources=[_SOURCE.read_text()],
+                           functions=None, extra_cflags=["-O2"], verbose=False,
+                           build_directory=str(build_dir))
+
+
 def load() -> Any | None:
     """The compiled module (with ``RolloutLoop``), or None when disabled or not buildable."""
     if os.environ.get("PEEL_NATIVE_LOOP", "1") == "0":
@@ -45,12 +80,7 @@ def load() -> Any | None:
             return _STATE["module"]
         _STATE["tried"] = True
         try:
-            from torch.utils.cpp_extension import load_inline
-
-            _ninja_on_path()
-            _STATE["module"] = load_inline(
-                name="peel_rollout_loop", cpp_sources=[_SOURCE.read_text()], functions=None,
-                extra_cflags=["-O2"], verbose=False)
+            _STATE["module"] = _build()
             _STATE["reason"] = "built"
         except Exception as exc:  # no compiler, no ninja, no headers: the Python loop runs
             _STATE["reason"] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1:]}"
