@@ -179,8 +179,6 @@ class FusedConvAttentionLSTM:
         w1 = reg[0].weight.detach()
         shift = (p.out_mean / p.in_std[2:4]).detach()
         scale = (p.out_std / p.in_std[2:4]).detach()
-        # first FC layer over [h_L, v_{k+1}, 1]
-        w1_aug = torch.cat([w1.t(), reg[0].bias.detach().unsqueeze(0)], dim=0).contiguous()
 
         def cols(js: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
             return (toe[:, js, :].reshape(h * n_in, len(js) * c_all).contiguous(),
@@ -215,8 +213,7 @@ class FusedConvAttentionLSTM:
             "wh4": ifog(lstm.w_h.weight.detach()).t().reshape(hid, 4, hid).permute(1, 0, 2)
             .contiguous(),
             "a2w_t": mlp[2].weight.detach().t().contiguous(), "a2b": mlp[2].bias.detach(),
-            "w1_aug": w1_aug,
-            # the same layer split: h_L part [hid, width] and v_{k+1} column, bias
+            # first FC layer split: h_L part [hid, width], v_{k+1} column, bias
             "w1_h": w1[:, :hid].t().contiguous(), "w1_v": w1[:, hid].contiguous(),
             "b1": reg[0].bias.detach().contiguous(),
             # later FC layers as one mm each on [y, 1] (bias as the last weight row); the last
