@@ -68,6 +68,34 @@ def test_rollout_cost_masks_after_goal_and_rewards_finishing_sooner() -> None:
     assert float(late - j_slow) == pytest.approx(1.0)
 
 
+def test_rollout_cost_equals_per_sample_terms_summed() -> None:
+    """The batched rollout cost (both force axes in one tensor) is the sum over samples of
+    immediate() + barrier(), masked after q_ter, + cost-to-go + phi, written out sample by
+    sample here (float64, forces on both sides of the barrier onset and the prewarning)."""
+    cost = Cost(CFG.cost)
+    c = CFG.cost
+    rng = np.random.default_rng(2)
+    n, s = 7, 9
+    q = torch.tensor(18.0 + np.cumsum(rng.uniform(0.0, 1.5, (n, s)), axis=1))
+    fx = torch.tensor(rng.uniform(-22.0, 22.0, (n, s)))
+    fz = torch.tensor(rng.uniform(-22.0, 22.0, (n, s)))
+    got = cost.rollout_cost(18.0, 3.0, torch.stack([q, fx, fz], dim=-1))
+    for k in range(n):
+        total, q_prev, t_reach = 0.0, 18.0, None
+        for t in range(s):
+            qt = min(float(q[k, t]), c.q_ter_mm)
+            if q_prev < c.q_ter_mm:
+                one = lambda x: torch.tensor([x], dtype=torch.float64)  # noqa: E731
+                total += float(cost.immediate(one(qt - q_prev), one(fx[k, t]), one(fz[k, t]))
+                               + cost.barrier(one(fx[k, t]), one(fz[k, t])))
+            if t_reach is None and qt >= c.q_ter_mm:
+                t_reach = 3.0 + (t + 1) * c.dt_s
+            q_prev = qt
+        total += c.w_togo * (c.q_ter_mm - q_prev) / (c.q_ter_mm - c.q0_mm)
+        total += c.phi_late if t_reach is not None and t_reach > c.t_max_s else 0.0
+        assert float(got[k]) == pytest.approx(total, rel=1e-12, abs=1e-12)
+
+
 def test_barrier_penalises_forces_near_prewarning() -> None:
     cost = Cost(CFG.cost)
     f = torch.tensor([0.0, 15.0, 17.5, 19.9, 20.0, 25.0])
