@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -56,15 +60,27 @@ def test_learned_rollout_matches_stepwise_predict(arch: str) -> None:
                                atol=2e-5, rtol=1e-5)
 
 
+@pytest.fixture()
+def native_loop():
+    """The C++ loop's loader, built. Skipped only where it cannot be built (no compiler or no
+    ninja) or was switched off with PEEL_NATIVE_LOOP=0; with the toolchain present a failed
+    build fails the test."""
+    from peel_planner_node import native_loop as loader
+
+    if os.environ.get("PEEL_NATIVE_LOOP", "1") == "0":
+        pytest.skip("C++ loop switched off by PEEL_NATIVE_LOOP=0")
+    missing = loader.toolchain_missing()
+    if missing is not None:
+        pytest.skip(f"C++ loop cannot be built here: {missing}")
+    assert loader.load() is not None, loader.status()["reason"]
+    return loader
+
+
 @pytest.mark.parametrize("arch", ["ours", "cnn-lstm"])
-def test_native_loop_is_bit_identical_to_the_python_loop(arch: str) -> None:
+def test_native_loop_is_bit_identical_to_the_python_loop(arch: str, native_loop) -> None:
     """The C++ model-step loop (csrc/rollout_loop.cpp) makes the same ATen calls as the Python
     loop: equal bit for bit, over S > h, the wavefront's cut-off windows, a reused workspace,
     chunks on worker threads (the GIL is released) and after an in-place weight update."""
-    from peel_planner_node import native_loop
-
-    if native_loop.load() is None:  # no compiler here: the Python loop is what runs
-        pytest.skip(f"C++ loop unavailable: {native_loop.status()['reason']}")
     torch.manual_seed(7)
     pred = ForcePredictor(ModelConfig().with_arch(arch), NORM)
     hist = history(25, seed=8)
@@ -84,10 +100,6 @@ def test_native_loop_is_bit_identical_to_the_python_loop(arch: str) -> None:
 
 def test_native_loop_can_be_switched_off() -> None:
     """PEEL_NATIVE_LOOP=0 (a fresh process): the Python loop runs and status() says why."""
-    import os
-    import subprocess
-    import sys
-
     code = ("from peel_planner_node import native_loop as m; import json; "
             "print(m.load() is None, json.dumps(m.status()))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -228,17 +240,9 @@ def test_oracle_adapter_checks_shape() -> None:
         OracleDynamics(Bad()).rollout(history(), torch.ones(2, 4))
 
 
-def test_native_loop_build_survives_a_leftover_torch_lock() -> None:
+def test_native_loop_build_survives_a_leftover_torch_lock(native_loop) -> None:
     """A killed build leaves torch's lock file behind, and torch would wait for it forever; the
     loader (holding its own OS lock) removes it and loads."""
-    import os
-    import subprocess
-    import sys
-
-    from peel_planner_node import native_loop
-
-    if native_loop.load() is None:
-        pytest.skip(f"C++ loop unavailable: {native_loop.status()['reason']}")
     leftover = native_loop._build_dir() / "lock"
     leftover.touch()
     out = subprocess.run([sys.executable, "-m", "peel_planner_node.native_loop"],

@@ -52,7 +52,6 @@ def _build_dir() -> Path:
 def _build() -> Any:
     from torch.utils.cpp_extension import load_inline
 
-    _ninja_on_path()
     build_dir = _build_dir()
     build_dir.mkdir(parents=True, exist_ok=True)
     with open(build_dir / "peel.lock", "w") as lock:
@@ -70,6 +69,17 @@ def _build() -> Any:
                            build_directory=str(build_dir))
 
 
+def toolchain_missing() -> str | None:
+    """What is missing to build the loop (a C++ compiler, ninja), or None when both are there."""
+    _ninja_on_path()
+    compiler = os.environ.get("CXX", "c++")
+    if shutil.which(compiler) is None:
+        return f"no C++ compiler ({compiler!r} not on PATH)"
+    if shutil.which("ninja") is None:
+        return "no ninja on PATH"
+    return None
+
+
 def load() -> Any | None:
     """The compiled module (with ``RolloutLoop``), or None when disabled or not buildable."""
     if os.environ.get("PEEL_NATIVE_LOOP", "1") == "0":
@@ -79,6 +89,11 @@ def load() -> Any | None:
         if _STATE["tried"]:
             return _STATE["module"]
         _STATE["tried"] = True
+        missing = toolchain_missing()
+        if missing is not None:
+            _STATE["reason"] = missing
+            _LOG.warning("peel: C++ rollout loop unavailable (%s); using the Python loop", missing)
+            return None
         try:
             _STATE["module"] = _build()
             _STATE["reason"] = "built"
