@@ -42,6 +42,25 @@ def delete_entity(entity: Any) -> None:
         entity.__del__()
 
 
+class DdsEntity:
+    """Publisher, Subscription, Service, Client: ``destroy()`` goes through the owning node
+    (which drops the entity and calls ``_delete``); ``_dds_handles()`` names the Cyclone DDS
+    entities deleted then, in order."""
+
+    _node: Any
+
+    def _dds_handles(self) -> tuple[Any, ...]:
+        raise NotImplementedError
+
+    def destroy(self) -> bool:
+        self._node._destroy_entity(self)
+        return True
+
+    def _delete(self) -> None:
+        for handle in self._dds_handles():
+            delete_entity(handle)
+
+
 class Context:
     """``rclpy.context.Context``: lifetime of the ROS client library in this process."""
 

@@ -18,7 +18,7 @@ from cyclonedds.sub import DataReader
 
 from ...errors import PeelError
 from . import cdr
-from .context import delete_entity
+from .context import DdsEntity
 from .qos import QoSProfile, to_dds
 from .time import Clock, ClockType
 
@@ -33,7 +33,7 @@ def check_message_class(msg_type: Any) -> None:
         raise PeelError(f"{msg_type!r} is not a message class of peel_msgs_py.runtime.msg")
 
 
-class Publisher:
+class Publisher(DdsEntity):
     """``rclpy.publisher.Publisher``."""
 
     def __init__(self, node: Node, msg_type: type[Any], topic: str, qos: QoSProfile) -> None:
@@ -68,15 +68,11 @@ class Publisher:
 
         return bool(self._writer.wait_for_acks(duration(seconds=timeout_sec)))
 
-    def destroy(self) -> bool:
-        self._node._destroy_entity(self)
-        return True
-
-    def _delete(self) -> None:
-        delete_entity(self._writer)
+    def _dds_handles(self) -> tuple[Any, ...]:
+        return (self._writer,)
 
 
-class Subscription:
+class Subscription(DdsEntity):
     """``rclpy.subscription.Subscription``; ``raw=True`` hands the callback CDR bytes."""
 
     def __init__(
@@ -122,13 +118,8 @@ class Subscription:
             return lambda: self.callback(msg)
         return None
 
-    def destroy(self) -> bool:
-        self._node._destroy_entity(self)
-        return True
-
-    def _delete(self) -> None:
-        delete_entity(self._cond)
-        delete_entity(self._reader)
+    def _dds_handles(self) -> tuple[Any, ...]:
+        return (self._cond, self._reader,)
 
 
 class Timer:

@@ -32,7 +32,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
 from ...errors import PeelError
-from .context import csid_to_string, delete_entity
+from .context import DdsEntity, csid_to_string
 from .entities import ANY_STATE
 from .names import dds_reply, dds_request
 from .qos import QoSProfile, to_dds
@@ -175,7 +175,7 @@ def _open_endpoints(
         raise PeelError(f"cannot create {what} {name}: {exc}") from None
 
 
-class Service:
+class Service(DdsEntity):
     """``rclpy.service.Service``: ``callback(request, response) -> response``."""
 
     def __init__(
@@ -253,17 +253,11 @@ class Service:
         self._pending.append((to_wire(response, guid, seq), writer_handle, clientid, time.monotonic()))
         self._flush()
 
-    def destroy(self) -> bool:
-        self._node._destroy_entity(self)
-        return True
-
-    def _delete(self) -> None:
-        delete_entity(self._cond)
-        delete_entity(self._reader)
-        delete_entity(self._writer)
+    def _dds_handles(self) -> tuple[Any, ...]:
+        return (self._cond, self._reader, self._writer,)
 
 
-class Client:
+class Client(DdsEntity):
     """``rclpy.client.Client``: ``call_async``, ``wait_for_service``, ``service_is_ready``."""
 
     def __init__(self, node: Node, srv_type: type[Any], name: str, qos: QoSProfile) -> None:
@@ -329,11 +323,5 @@ class Client:
             return lambda: future.set_result(response)
         return None
 
-    def destroy(self) -> bool:
-        self._node._destroy_entity(self)
-        return True
-
-    def _delete(self) -> None:
-        delete_entity(self._cond)
-        delete_entity(self._reader)
-        delete_entity(self._writer)
+    def _dds_handles(self) -> tuple[Any, ...]:
+        return (self._cond, self._reader, self._writer,)
