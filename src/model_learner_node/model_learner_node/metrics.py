@@ -39,6 +39,16 @@ def predict_windows(predictor, win: Windows, batch: int = 8192) -> np.ndarray:
     return np.concatenate(out).astype(np.float64) if out else np.zeros((0, 2))
 
 
+def _metrics(win: Windows, pred) -> dict:
+    """RMSE and Corr per channel and RMSE over both, of ``pred`` against ``win.f_next``."""
+    out = {"rmse": {}, "corr": {}, "n_samples": len(win)}
+    for j, ch in enumerate(CHANNELS):
+        out["rmse"][ch] = rmse(win.f_next[:, j], pred[:, j])
+        out["corr"][ch] = corr(win.f_next[:, j], pred[:, j])
+    out["rmse"]["all"] = rmse(win.f_next, pred)
+    return out
+
+
 def evaluate_windows(predictor, win: Windows) -> dict:
     """{"rmse": {fx, fz, all}, "corr": {fx, fz}, "n_samples"} on the given windows."""
     if len(win) == 0:
@@ -47,12 +57,7 @@ def evaluate_windows(predictor, win: Windows) -> dict:
     predictor.eval()
     pred = predict_windows(predictor, win)
     predictor.train(was_training)
-    out = {"rmse": {}, "corr": {}, "n_samples": len(win)}
-    for j, ch in enumerate(CHANNELS):
-        out["rmse"][ch] = rmse(win.f_next[:, j], pred[:, j])
-        out["corr"][ch] = corr(win.f_next[:, j], pred[:, j])
-    out["rmse"]["all"] = rmse(win.f_next, pred)
-    return out
+    return _metrics(win, pred)
 
 
 def evaluate(predictor, trajectories: Sequence, pad_front: int | None = None) -> dict:
@@ -63,9 +68,4 @@ def evaluate(predictor, trajectories: Sequence, pad_front: int | None = None) ->
 def persistence_metrics(win: Windows) -> dict:
     """The same metrics for the trivial predictor F_{k+1} = F_k (a reference, not a model)."""
     pred = win.hist[:, -1, 2:4]
-    out = {"rmse": {}, "corr": {}, "n_samples": len(win)}
-    for j, ch in enumerate(CHANNELS):
-        out["rmse"][ch] = rmse(win.f_next[:, j], pred[:, j])
-        out["corr"][ch] = corr(win.f_next[:, j], pred[:, j])
-    out["rmse"]["all"] = rmse(win.f_next, pred)
-    return out
+    return _metrics(win, pred)
