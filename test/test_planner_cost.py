@@ -166,3 +166,18 @@ def test_bad_parameters_name_the_field(tmp_path) -> None:
     override = tmp_path / "o.yaml"
     override.write_text("peel_planner_node:\n  ros__parameters:\n    mppi:\n      horizon: 7\n")
     assert load_planner_config(override).mppi.horizon == 7
+
+
+def test_config_round_trips_every_parameter() -> None:
+    """to_params() names every declared parameter once; from_params() of it rebuilds the config,
+    and a changed parameter lands in its field (task.* and safety.* feed several sections)."""
+    from peel_planner_node.config import PARAM_SPECS
+
+    cfg = load_planner_config()
+    flat = cfg.to_params()
+    assert set(flat) == {spec.name for spec in PARAM_SPECS}
+    assert PlannerConfig.from_params(flat) == cfg
+    new = cfg.replace(**{"mppi.lambda": 0.3, "task.dt_s": 0.05, "task.control_period_s": 0.25,
+                         "safety.f_prewarn_n": 25.0})
+    assert new.mppi.lam == 0.3 and new.mppi.dt_s == new.cost.dt_s == 0.05
+    assert new.cost.f_prewarn_n == new.safety.f_prewarn_n == 25.0

@@ -163,57 +163,19 @@ class PlannerConfig:
                 f"parameter 'task.control_period_s' = {p['task.control_period_s']} must equal "
                 f"task.dt_s * mppi.steps_per_horizon_step = {period:g}"
             )
-        cost = CostConfig(
-            q0_mm=p["task.q0_mm"], q_ter_mm=p["task.q_ter_mm"], t_max_s=p["task.t_max_s"],
-            dt_s=p["task.dt_s"], w_dis=p["cost.w_dis"], w_fx=p["cost.w_fx"], w_fz=p["cost.w_fz"],
-            f_lim_x_n=p["cost.f_lim_x_n"], f_lim_z_n=p["cost.f_lim_z_n"],
-            phi_late=p["cost.phi_late"], phi_fail=p["cost.phi_fail"], w_togo=p["cost.w_togo"],
-            barrier_w=p["cost.barrier_w"], barrier_start_n=p["cost.barrier_start_n"],
-            barrier_stop_w=p["cost.barrier_stop_w"], f_prewarn_n=p["safety.f_prewarn_n"],
-        )
-        mppi = MppiConfig(
-            n_samples=p["mppi.n_samples"], horizon=p["mppi.horizon"], lam=p["mppi.lambda"],
-            steps_per_horizon_step=p["mppi.steps_per_horizon_step"], sigma0=p["mppi.sigma0"],
-            sigma_min=p["mppi.sigma_min"], sigma_max=p["mppi.sigma_max"],
-            sigma_window=p["mppi.sigma_window"], sigma_min_count=p["mppi.sigma_min_count"],
-            u_min=p["mppi.u_min"], u_max=p["mppi.u_max"], u_init=p["mppi.u_init"],
-            shift_fill=p["mppi.shift_fill"], control_cost_scale=p["mppi.control_cost_scale"],
-            control_cost_sigma=p["mppi.control_cost_sigma"],
-            noise_correlation=p["mppi.noise_correlation"],
-            rollout_workers=p["mppi.rollout_workers"],
-            min_samples_per_worker=p["mppi.min_samples_per_worker"],
-            iterations=p["mppi.iterations"], seed=p["mppi.seed"], dtype=p["mppi.dtype"],
-            dt_s=p["task.dt_s"],
-        )
-        safety = SafetyConfig(f_prewarn_n=p["safety.f_prewarn_n"], t_max_s=p["task.t_max_s"],
-                              q_ter_mm=p["task.q_ter_mm"])
+        cost, mppi, safety = (section(**{f.name: p[_param_name(name, f.name)]
+                                         for f in fields(section)})
+                              for name, section in _SECTIONS)
         return cls(cost=cost, mppi=mppi, safety=safety,
                    control_period_s=p["task.control_period_s"])
 
     def to_params(self) -> dict[str, Any]:
         """The flat parameter dict this config was built from (inverse of :meth:`from_params`)."""
-        c, m, s = self.cost, self.mppi, self.safety
-        return {
-            "task.q0_mm": c.q0_mm, "task.q_ter_mm": c.q_ter_mm, "task.t_max_s": c.t_max_s,
-            "task.dt_s": c.dt_s, "task.control_period_s": self.control_period_s,
-            "cost.w_dis": c.w_dis, "cost.w_fx": c.w_fx, "cost.w_fz": c.w_fz,
-            "cost.f_lim_x_n": c.f_lim_x_n, "cost.f_lim_z_n": c.f_lim_z_n,
-            "cost.phi_late": c.phi_late, "cost.phi_fail": c.phi_fail, "cost.w_togo": c.w_togo,
-            "cost.barrier_w": c.barrier_w, "cost.barrier_start_n": c.barrier_start_n,
-            "cost.barrier_stop_w": c.barrier_stop_w,
-            "mppi.n_samples": m.n_samples, "mppi.horizon": m.horizon, "mppi.lambda": m.lam,
-            "mppi.steps_per_horizon_step": m.steps_per_horizon_step, "mppi.sigma0": m.sigma0,
-            "mppi.sigma_min": m.sigma_min, "mppi.sigma_max": m.sigma_max,
-            "mppi.sigma_window": m.sigma_window, "mppi.sigma_min_count": m.sigma_min_count,
-            "mppi.u_min": m.u_min, "mppi.u_max": m.u_max, "mppi.u_init": m.u_init,
-            "mppi.shift_fill": m.shift_fill, "mppi.control_cost_scale": m.control_cost_scale,
-            "mppi.control_cost_sigma": m.control_cost_sigma,
-            "mppi.noise_correlation": m.noise_correlation,
-            "mppi.rollout_workers": m.rollout_workers,
-            "mppi.min_samples_per_worker": m.min_samples_per_worker,
-            "mppi.iterations": m.iterations, "mppi.seed": m.seed, "mppi.dtype": m.dtype,
-            "safety.f_prewarn_n": s.f_prewarn_n,
-        }
+        flat = {"task.control_period_s": self.control_period_s}
+        for name, _ in _SECTIONS:
+            part = getattr(self, name)
+            flat.update({_param_name(name, f.name): getattr(part, f.name) for f in fields(part)})
+        return flat
 
     def replace(self, **flat: Any) -> PlannerConfig:
         """A copy with some flat parameters changed, e.g. ``cfg.replace(**{"mppi.horizon": 10})``."""
@@ -225,6 +187,23 @@ class PlannerConfig:
         """Nested plain dict (for JSON reports)."""
         return {f.name: (asdict(getattr(self, f.name)) if f.name != "control_period_s"
                          else self.control_period_s) for f in fields(self)}
+
+
+#: the config sections and the dataclass of each
+_SECTIONS: tuple[tuple[str, type], ...] = (
+    ("cost", CostConfig), ("mppi", MppiConfig), ("safety", SafetyConfig))
+_SPEC_NAMES = frozenset(spec.name for spec in PARAM_SPECS)
+
+
+def _param_name(section: str, field: str) -> str:
+    """The parameter behind a section field: ``<section>.<field>``, else the shared ``task.`` /
+    ``safety.`` one (e.g. cost.dt_s <- task.dt_s); ``mppi.lam`` is ``mppi.lambda``."""
+    if (section, field) == ("mppi", "lam"):
+        return "mppi.lambda"
+    for prefix in (section, "task", "safety"):
+        if f"{prefix}.{field}" in _SPEC_NAMES:
+            return f"{prefix}.{field}"
+    raise AssertionError(f"no parameter for {section}.{field}")  # a field without a ParamSpec
 
 
 def load_planner_config(overrides: str | os.PathLike[str] | None = None) -> PlannerConfig:
