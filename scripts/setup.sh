@@ -1,7 +1,11 @@
 #!/usr/bin/env bash
 # Idempotent environment setup: creates .venv (Python 3.11 or 3.12), installs the pinned
-# dependencies and the five peel packages in editable mode. Re-running is a no-op when nothing
-# changed (a stamp file holds the hash of every file that affects the install).
+# dependencies, ROS 2 Jazzy's rclpy and message packages (pip wheels, requirements-ros.txt) and
+# the five peel packages in editable mode. Re-running is a no-op when nothing changed (a stamp
+# file holds the hash of every file that affects the install).
+#
+# On a machine with a sourced ROS 2 Jazzy install (ROS_DISTRO=jazzy) the venv sees the system
+# site-packages and uses that rclpy: the ros-* wheels are not installed.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -18,13 +22,32 @@ if [ -z "$PY" ]; then
   echo "setup: error: need Python 3.11 or 3.12 (set PEEL_PYTHON to its path)" >&2
   exit 2
 fi
+if [ "${ROS_DISTRO:-}" = "jazzy" ]; then
+  ros_mode="system"  # rclpy and the message packages come from the sourced Jazzy install
+  ros_reqs=()
+  venv_opts=(--system-site-packages)
+else
+  ros_mode="wheels"
+  ros_reqs=(-r requirements-ros.txt)
+  venv_opts=()
+fi
 stamp=".venv/.peel-setup-stamp"
-hash="$(cat requirements.txt requirements-dev.txt src/*/setup.py src/*/package.xml | sha256sum | cut -c1-16)"
+hash="$ros_mode-$(cat requirements.txt requirements-ros.txt requirements-dev.txt src/*/setup.py src/*/package.xml | sha256sum | cut -c1-16)"
 if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel ]; }; then
-  echo "setup: creating .venv with $PY and installing pinned dependencies (first run takes a minute)" >&2
-  [ -x .venv/bin/python ] || "$PY" -m venv .venv
+  echo "setup: creating .venv with $PY and installing pinned dependencies, rclpy from $ros_mode" \
+       "(first run takes a minute)" >&2
+  if [ -f "$stamp" ] && [ "${hash%%-*}" != "$(cut -d- -f1 "$stamp")" ]; then
+    rm -rf .venv  # switched between the rclpy wheels and a sourced Jazzy: start afresh
+  fi
+  [ -x .venv/bin/python ] || "$PY" -m venv "${venv_opts[@]}" .venv
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip setuptools wheel
-  .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-dev.txt
+  .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt \
+    -r requirements-dev.txt "${ros_reqs[@]}"
+  if ! .venv/bin/python -c "import rclpy, geometry_msgs.msg, rosgraph_msgs.msg" 2>/dev/null; then
+    echo "setup: error: rclpy is not importable from .venv (ROS_DISTRO=${ROS_DISTRO:-unset});" \
+         "source /opt/ros/jazzy/setup.bash or unset ROS_DISTRO to use the pip wheels" >&2
+    exit 2
+  fi
   for pkg in peel_msgs_py peel_sim_node model_learner_node peel_planner_node peel_bringup; do
     .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
   done

@@ -24,5 +24,9 @@ setup(
         "console_scripts": [
             'model_learner_node = model_learner_node.node:main'
         ],
+        # the parameters this package's node declares (peel_msgs_py.params checks files by them)
+        "peel.parameters": [
+            'model_learner_node = model_learner_node.parameters:SPECS',
+        ],
     },
 )

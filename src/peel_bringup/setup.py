@@ -26,5 +26,9 @@ setup(
         "console_scripts": [
             'peel = peel_bringup.cli:main'
         ],
+        # the parameters this package's node declares (peel_msgs_py.params checks files by them)
+        "peel.parameters": [
+            'peel_bringup = peel_bringup.parameters:SPECS',
+        ],
     },
 )

@@ -23,5 +23,9 @@ setup(
         "console_scripts": [
             'peel_planner_node = peel_planner_node.node:main'
         ],
+        # the parameters this package's node declares (peel_msgs_py.params checks files by them)
+        "peel.parameters": [
+            'peel_planner_node = peel_planner_node.parameters:SPECS',
+        ],
     },
 )

@@ -23,5 +23,9 @@ setup(
         "console_scripts": [
             'peel_sim_node = peel_sim_node.node:main'
         ],
+        # the parameters this package's node declares (peel_msgs_py.params checks files by them)
+        "peel.parameters": [
+            'peel_sim_node = peel_sim_node.parameters:SPECS',
+        ],
     },
 )

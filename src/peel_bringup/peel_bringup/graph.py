@@ -1,12 +1,15 @@
-"""``peel graph``: run the ROS 2 node graph as separate OS processes (issue 7, docs/graph.md).
+"""``peel graph``: run the ROS 2 node graph as separate OS processes (docs/graph.md).
 
     peel graph [--plant sim|plant] [--tasks K] [--record BAG] [--params FILE] [--seed S]
                [--out DIR] [--keep-going] [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
-``peel record``, with ``--record``) as child processes on the selected runtime (``PEEL_RUNTIME``,
-``ROS_DOMAIN_ID`` are passed on), each with its ``config/<node>.yaml``, the override file and a
-few ``-p`` settings, exactly as ``ros2 run`` would get them. The launcher itself joins the graph
+``peel record``, with ``--record``) as child processes on rclpy (``ROS_DOMAIN_ID`` is passed on;
+``ROS_AUTOMATIC_DISCOVERY_RANGE`` is LOCALHOST unless set), each with its
+``config/<node>.yaml``, the override file and a few ``-p`` settings, exactly as ``ros2 run``
+would get them. Every node's parameters are checked before anything starts (unknown names,
+types, ranges: one line, exit 2); a node that refuses its parameters anyway exits 2, and so
+does the graph. The launcher itself joins the graph
 as a listener (``peel_graph``: ``/peel/trajectory``, ``/peel/model_version``) and prints one line
 per finished task: outcome, T_cpl, J (Eq. 3, :func:`peel_planner_node.cost.episode_cost`) and the
 model version the task ran with.
@@ -23,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import os
 import signal
@@ -34,40 +36,45 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from peel_msgs_py import discovery
 from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.params import (
-    ParamSpec,
-    config_dir,
-    default_param_file,
-    load_node_params,
-    load_param_file,
-    validate_group,
-)
+from peel_msgs_py.params import config_dir, default_param_file, load_node_params, validate
+
+from .parameters import GRAPH_SPECS
 
 NODE_NAME = "peel_bringup"
 NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
 RECORDER = "recorder"
 #: Nodes whose death the graph survives with --keep-going.
 OPTIONAL = ("model_learner_node", RECORDER)
-
-#: The ``graph:`` group of config/peel_bringup.yaml.
-GRAPH_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("graph.tasks", int, 3, "consecutive tasks K", min=1),
-    ParamSpec("graph.plant", str, "sim", "sim or plant", choices=("sim", "plant")),
-    ParamSpec("graph.seed", int, 0, "seed of the task sequence", min=0),
-    ParamSpec("graph.out_dir", str, "runs/graph", "parent of the run directories"),
-    ParamSpec("graph.final_model_wait_s", float, 300.0,
-              "wall s to wait for the learner's swap after the last task", min=0.0),
-    ParamSpec("graph.stop_timeout_s", float, 20.0,
-              "wall s a node gets to exit after SIGINT before SIGTERM / SIGKILL", min=0.1),
-)
+#: Exit status of a node (and of the graph) refusing bad input, e.g. a parameter.
+BAD_INPUT = 2
 
 
 def graph_params(override: str | None) -> dict[str, Any]:
     """The validated ``graph.*`` parameters: shipped config/peel_bringup.yaml + override file."""
     flat = load_node_params(NODE_NAME, override)
-    return validate_group(GRAPH_SPECS, flat, "graph")
+    return validate(GRAPH_SPECS, {k: v for k, v in flat.items() if k.startswith("graph.")})
+
+
+def node_specs(name: str) -> tuple[Any, ...]:
+    """Every parameter node ``name`` declares (its package's ``parameters.SPECS``)."""
+    import importlib
+
+    return tuple(importlib.import_module(f"{name}.parameters").SPECS)
+
+
+def check_node_params(override: str | None, sets: dict[str, dict[str, Any]]) -> None:
+    """Refuse, before any process starts, what a node would refuse at its start: unknown names
+    (sections of the files included), wrong types (an integer for a DOUBLE too), values out of
+    range, with the parameter named (:class:`~peel_msgs_py.errors.ParameterError`)."""
+    for name in NODES:
+        specs = node_specs(name)
+        known = {s.name for s in specs}
+        # /** names this node does not declare are for other nodes (checked by the loader)
+        flat = {k: v for k, v in load_node_params(name, override).items() if k in known}
+        validate(specs, {**flat, **sets[name]})
 
 
 def _p(name: str, value: Any) -> list[str]:
@@ -156,8 +163,9 @@ class Child:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.proc.pid, sig)
 
-    def stop(self, timeout_s: float) -> int | None:
-        """SIGINT, then SIGTERM, then SIGKILL; returns the exit status."""
+    def stop(self, timeout_s: float, *, signalled: bool = False) -> int | None:
+        """SIGINT (unless ``signalled`` already), then SIGTERM, then SIGKILL, each only after
+        the previous one went unanswered; returns the exit status."""
         if self.proc is None:
             return None
         self.stopping = True
@@ -165,7 +173,8 @@ class Child:
                           (signal.SIGKILL, 5.0)):
             if self.proc.poll() is not None:
                 break
-            self.signal(sig)
+            if not (signalled and sig == signal.SIGINT):
+                self.signal(sig)
             try:
                 self.proc.wait(timeout=wait)
             except subprocess.TimeoutExpired:
@@ -178,15 +187,6 @@ class Child:
         except OSError:
             return ""
         return "\n".join("    " + line for line in lines[-n:])
-
-
-@dataclass
-class Monitor:
-    """What the launcher hears on the graph."""
-
-    trajectories: list[Any] = field(default_factory=list)
-    version: int | None = None
-    versions: list[int] = field(default_factory=list)
 
 
 class _Interrupt:
@@ -244,21 +244,28 @@ def task_line(i: int, k: int, traj: Any, j: float) -> str:
             f"model v{v if v is not None else '?'}")
 
 
-def run_graph(args: argparse.Namespace) -> int:
-    """Start, watch and stop the graph; returns the exit status."""
+@dataclass
+class Run:
+    """What a graph run was asked to do, resolved and checked before anything starts."""
+
+    override: str | None
+    gp: dict[str, Any]
+    tasks: int
+    plant: str
+    seed: int
+    run_dir: Path
+    bag: Path | None
+
+
+def resolve(args: argparse.Namespace) -> Run:
+    """Arguments + config, every node's parameters checked; PeelError on bad input."""
     override = args.params
     if override is not None and not Path(override).is_file():
         raise PeelError(f"--params: no such file {override}")
     gp = graph_params(override)
-    for name in NODES:  # a bad override file fails here, before anything starts
-        if default_param_file(name).is_file():
-            load_param_file(default_param_file(name), name)
-        if override:
-            load_param_file(override, name)
     tasks = args.tasks if args.tasks is not None else gp["graph.tasks"]
     if tasks < 1:
         raise PeelError(f"--tasks must be >= 1, got {tasks}")
-    plant = args.plant or gp["graph.plant"]
     seed = args.seed if args.seed is not None else gp["graph.seed"]
     if seed < 0:
         raise PeelError(f"--seed must be >= 0, got {seed}")
@@ -267,136 +274,181 @@ def run_graph(args: argparse.Namespace) -> int:
     bag = Path(args.record) if args.record else None
     if bag is not None and bag.exists():
         raise PeelError(f"--record: {bag} already exists")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run = Run(override, gp, tasks, args.plant or gp["graph.plant"], seed, run_dir, bag)
+    check_node_params(override, node_settings(run.plant, tasks, seed, run_dir, bag is not None))
+    return run
 
+
+def children_of(run: Run) -> list[Child]:
+    """The recorder (first, so it hears everything) and the three nodes."""
+    logs = run.run_dir / "logs"
+    sets = node_settings(run.plant, run.tasks, run.seed, run.run_dir, run.bag is not None)
+    children: list[Child] = []
+    if run.bag is not None:
+        children.append(Child(RECORDER, [sys.executable, "-m", "peel_msgs_py.recorder_cli",
+                                         "--out", str(run.bag)], logs / "recorder.log"))
+    for name in ("model_learner_node", "peel_planner_node", "peel_sim_node"):
+        children.append(Child(name, node_command(name, run.override, sets[name]),
+                              logs / f"{name}.log"))
+    return children
+
+
+def child_env() -> dict[str, str]:
+    """The nodes' environment: this one, confined to the machine unless the user opened it."""
     env = dict(os.environ)
+    discovery.confine(env)
     env["PYTHONUNBUFFERED"] = "1"
     env.setdefault("PEEL_CONFIG_DIR", str(config_dir()))
     env.setdefault("OMP_NUM_THREADS", "1")
-    sets = node_settings(plant, tasks, seed, run_dir, bag is not None)
-    children: list[Child] = []
-    if bag is not None:
-        children.append(Child(RECORDER, [sys.executable, "-m", "peel_msgs_py.recorder_cli",
-                                         "--out", str(bag)], run_dir / "logs" / "recorder.log"))
-    for name in ("model_learner_node", "peel_planner_node", "peel_sim_node"):
-        children.append(Child(name, node_command(name, override, sets[name]),
-                              run_dir / "logs" / f"{name}.log"))
+    return env
 
-    from peel_msgs_py import codec, topics
-    from peel_msgs_py.runtime import Node, rclpy
-    from peel_msgs_py.runtime.msg import Float64MultiArray, Int64
 
-    mon = Monitor()
-    rclpy.init(args=None)
+@dataclass
+class Watch:
+    """The launcher's view of a running graph."""
+
+    run: Run
+    children: list[Child]
+    results: list[dict[str, Any]] = field(default_factory=list)
+    dead: list[str] = field(default_factory=list)
+    status: int = 0
+    finished_at: float | None = None
+    start_version: int | None = None
+    shown_version: int | None = None
+
+    def report_tasks(self, mon: Any) -> None:
+        if self.start_version is None and mon.version is not None:
+            self.start_version = mon.version
+        if mon.version is not None and mon.version != self.shown_version:
+            self.shown_version = mon.version
+            print(f"peel graph: planner model v{mon.version} active", flush=True)
+        while len(self.results) < len(mon.trajectories):
+            traj = mon.trajectories[len(self.results)]
+            j = _task_cost(traj, self.run.override)
+            self.results.append({"task": len(self.results) + 1, "outcome": traj.outcome,
+                                 "t_cpl_s": traj.t_cpl, "J": j, "sum_fx_n": traj.sum_fx,
+                                 "sum_fz_n": traj.sum_fz,
+                                 "model_version": traj.meta.get("model_version"),
+                                 "samples": len(traj)})
+            print(task_line(len(self.results), self.run.tasks, traj, j), flush=True)
+
+    def check_children(self, keep_going: bool) -> bool:
+        """Report newly dead children; True when the graph must stop."""
+        for child in self.children:
+            code = child.poll()
+            if code is not None and not child.reported:
+                child.reported = True
+                self.dead.append(child.name)
+                if code == BAD_INPUT:
+                    self.status = BAD_INPUT
+                print(f"peel graph: error: node {child.name} (pid {child.pid}) died with "
+                      f"exit status {code}; log {child.log}\n{child.tail()}",
+                      file=sys.stderr, flush=True)
+        fatal = [d for d in self.dead if not (keep_going and d in OPTIONAL)]
+        if fatal:
+            self.status = self.status or 1
+        return bool(fatal)
+
+    def finished(self, mon: Any) -> bool:
+        """All tasks reported and the learner's last swap in (or given up on)."""
+        if len(self.results) < self.run.tasks:
+            return False
+        if self.finished_at is None:
+            self.finished_at = time.monotonic()
+        learner_alive = "model_learner_node" not in self.dead
+        want = (self.start_version or 0) + self.run.tasks
+        wait_s = self.run.gp["graph.final_model_wait_s"]
+        arrived = (mon.version or 0) >= want
+        if learner_alive and not arrived and time.monotonic() - self.finished_at < wait_s:
+            return False
+        if learner_alive and not arrived:
+            print(f"peel graph: warning: model version {want} did not arrive within "
+                  f"{wait_s:g} s", file=sys.stderr)
+        return True
+
+
+def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
+    """Spin the monitor until the tasks are done, a node dies or the user interrupts."""
+    import rclpy
+
+    while True:
+        rclpy.spin_once(mon, timeout_sec=0.1)
+        w.report_tasks(mon)
+        if stop.signum is not None:
+            print("peel graph: interrupted; stopping the nodes", file=sys.stderr, flush=True)
+            w.status = 130
+            return
+        if w.check_children(keep_going) or w.finished(mon):
+            return
+
+
+def tear_down(children: list[Child], timeout_s: float) -> None:
+    """One SIGINT per node (simulator, planner, learner), each waited for (then SIGTERM,
+    SIGKILL after the grace period); the recorder last, so the bag holds everything."""
+    nodes = [c for c in children if c.name != RECORDER]
+    for child in nodes:
+        child.signal(signal.SIGINT)
+        child.stopping = True
+    for child in nodes:
+        child.stop(timeout_s, signalled=True)
+    for child in children:
+        if child.name == RECORDER:
+            time.sleep(0.5)  # let the last messages reach the recorder
+            code = child.stop(timeout_s)
+            if code not in (0, None) and not child.reported:
+                print(f"peel graph: warning: the recorder exited with status {code}; "
+                      f"log {child.log}", file=sys.stderr)
+
+
+def run_graph(args: argparse.Namespace) -> int:
+    """Start, watch and stop the graph; returns the exit status."""
+    run = resolve(args)
+    run.run_dir.mkdir(parents=True, exist_ok=True)
+    children = children_of(run)
+    env = child_env()
+    discovery.confine()  # the launcher's own node too
+
+    import rclpy
+
+    from .monitor_node import GraphMonitor
+
+    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     stop = _Interrupt()
     stop.install()
-    node = Node("peel_graph")
-
-    def on_traj(msg: Any) -> None:
-        try:
-            mon.trajectories.append(codec.trajectory_from_msg(msg))
-        except PeelError as exc:
-            print(f"peel graph: warning: bad /peel/trajectory message: {exc}", file=sys.stderr)
-
-    def on_version(msg: Any) -> None:
-        mon.version = int(msg.data)
-        mon.versions.append(int(msg.data))
-
-    node.create_subscription(Float64MultiArray, topics.TRAJECTORY, on_traj,
-                             topics.qos_profile(topics.TRAJECTORY, subscriber=True))
-    # deeper reader history than the latched profile's 1, so quick successive swaps are all seen
-    node.create_subscription(Int64, topics.MODEL_VERSION, on_version, topics.qos_profile(
-        dataclasses.replace(topics.topic(topics.MODEL_VERSION).sub_qos, depth=16)))
-
-    status = 0
-    dead: list[str] = []
-    results: list[dict[str, Any]] = []
+    mon = GraphMonitor()
+    w = Watch(run, children)
     try:
         for child in children:
             child.start(env, args.verbose)
             print(f"peel graph: started {child.name} (pid {child.pid})", flush=True)
-        printed = 0
-        finished_at: float | None = None
-        start_version: int | None = None
-        shown_version: int | None = None
-        while True:
-            rclpy.spin_once(node, timeout_sec=0.1)
-            if start_version is None and mon.version is not None:
-                start_version = mon.version
-            if mon.version is not None and mon.version != shown_version:
-                shown_version = mon.version
-                print(f"peel graph: planner model v{shown_version} active", flush=True)
-            while printed < len(mon.trajectories):
-                traj = mon.trajectories[printed]
-                printed += 1
-                j = _task_cost(traj, override)
-                results.append({"task": printed, "outcome": traj.outcome, "t_cpl_s": traj.t_cpl,
-                                "J": j, "sum_fx_n": traj.sum_fx, "sum_fz_n": traj.sum_fz,
-                                "model_version": traj.meta.get("model_version"),
-                                "samples": len(traj)})
-                print(task_line(printed, tasks, traj, j), flush=True)
-            if stop.signum is not None:
-                print("peel graph: interrupted; stopping the nodes", file=sys.stderr, flush=True)
-                status = 130
-                break
-            for child in children:
-                code = child.poll()
-                if code is not None and not child.reported:
-                    child.reported = True
-                    dead.append(child.name)
-                    print(f"peel graph: error: node {child.name} (pid {child.pid}) died with "
-                          f"exit status {code}; log {child.log}\n{child.tail()}",
-                          file=sys.stderr, flush=True)
-            fatal = [d for d in dead if not (args.keep_going and d in OPTIONAL)]
-            if fatal:
-                status = 1
-                break
-            if printed >= tasks:
-                if finished_at is None:
-                    finished_at = time.monotonic()
-                learner_alive = "model_learner_node" not in dead
-                want = (start_version or 0) + tasks
-                waited = time.monotonic() - finished_at
-                if (not learner_alive or (mon.version or 0) >= want
-                        or waited >= gp["graph.final_model_wait_s"]):
-                    if learner_alive and (mon.version or 0) < want:
-                        print(f"peel graph: warning: model version {want} did not arrive within "
-                              f"{gp['graph.final_model_wait_s']:g} s", file=sys.stderr)
-                    break
-        if dead:
-            status = status or 1
+        watch(w, mon, stop, args.keep_going)
+        if w.dead:
+            w.status = w.status or 1
     finally:
         stop.restore()
-        for child in children:  # nodes first (sim stops producing), recorder last
-            if child.name != RECORDER:
-                child.signal(signal.SIGINT)
-        for child in children:
-            if child.name != RECORDER:
-                child.stop(gp["graph.stop_timeout_s"])
-        for child in children:
-            if child.name == RECORDER:
-                time.sleep(0.5)  # let the last messages reach the recorder
-                code = child.stop(gp["graph.stop_timeout_s"])
-                if code not in (0, None) and child.name not in dead:
-                    print(f"peel graph: warning: the recorder exited with status {code}; "
-                          f"log {child.log}", file=sys.stderr)
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        tear_down(children, run.gp["graph.stop_timeout_s"])
+        mon.destroy_node()
+        rclpy.try_shutdown()
+    return write_summary(w, mon)
 
+
+def write_summary(w: Watch, mon: Any) -> int:
+    """``summary.json`` and the closing lines; returns the exit status."""
+    run = w.run
     summary = {
-        "plant": plant, "tasks": tasks, "seed": seed, "params": override,
-        "bag": str(bag) if bag else None, "run_dir": str(run_dir),
-        "model_versions": sorted(set(mon.versions)), "dead_nodes": dead,
-        "results": results, "status": status,
+        "plant": run.plant, "tasks": run.tasks, "seed": run.seed, "params": run.override,
+        "bag": str(run.bag) if run.bag else None, "run_dir": str(run.run_dir),
+        "model_versions": sorted(set(mon.versions)), "dead_nodes": w.dead,
+        "results": w.results, "status": w.status,
     }
-    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(run.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     vers = ", ".join(f"v{v}" for v in summary["model_versions"]) or "none"
-    print(f"peel graph: {len(results)} of {tasks} tasks finished; model versions {vers}; "
-          f"run directory {run_dir}" + (f"; bag {bag}" if bag else ""), flush=True)
-    if dead:
-        print(f"peel graph: error: node(s) died: {', '.join(dead)}", file=sys.stderr, flush=True)
-    return status
+    print(f"peel graph: {len(w.results)} of {run.tasks} tasks finished; model versions {vers}; "
+          f"run directory {run.run_dir}" + (f"; bag {run.bag}" if run.bag else ""), flush=True)
+    if w.dead:
+        print(f"peel graph: error: node(s) died: {', '.join(w.dead)}", file=sys.stderr,
+              flush=True)
+    return w.status
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,8 +23,8 @@ unchanged); NaN (unknown psi) stays NaN. The header JSON carries the ``outcome``
     rows = numpy.array(msg.data[msg.layout.data_offset:]).reshape(msg.layout.dim[0].size, 7)
 
 The JSON is written by Python's :mod:`json` (``NaN``/``Infinity`` allowed, as Python reads them).
-Decoding accepts any object with the ``layout``/``data`` attributes of the message (rclpy, the
-embedded runtime, or a ``rosbags`` deserialised message).
+Decoding accepts any object with the ``layout``/``data`` attributes of the message (rclpy, a
+``rosbags`` or an ``mcap-ros2-support`` deserialised message).
 
 Also here: the task frame ids (``header.frame_id = peel_task_<k>`` on the stamped topics) and
 ``builtin_interfaces/Time`` <-> seconds.
@@ -94,19 +94,18 @@ def trajectory_to_layout(traj: Trajectory) -> tuple[list[tuple[str, int, int]], 
 
 
 def trajectory_to_msg(traj: Trajectory) -> Any:
-    """A ``Float64MultiArray`` of the selected runtime holding ``traj`` (layout above)."""
-    from .runtime.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+    """A ``std_msgs/msg/Float64MultiArray`` (rclpy) holding ``traj`` (layout above).
 
-    dims, offset, data = trajectory_to_layout(traj)
-    layout = MultiArrayLayout(
-        dim=[MultiArrayDimension(label=lab, size=size, stride=stride) for lab, size, stride in dims],
-        data_offset=offset,
-    )
-    return Float64MultiArray(layout=layout, data=data.tolist())
+    Imports the generated message classes (through :mod:`peel_msgs_py.ros.messages`) on call.
+    """
+    from .ros.messages import trajectory_msg
+
+    return trajectory_msg(traj)
 
 
 def trajectory_from_msg(msg: Any) -> Trajectory:
-    """Inverse of :func:`trajectory_to_msg` for any message object with ``layout`` and ``data``.
+    """Inverse of :func:`trajectory_to_msg` for any message object with ``layout`` and ``data``
+    (rclpy's, ``rosbags``', ``mcap-ros2-support``'s).
 
     Raises :class:`PeelError` naming the offending field when the layout is not ours.
     """

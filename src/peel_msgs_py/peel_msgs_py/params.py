@@ -11,6 +11,16 @@ Nested keys flatten to dotted parameter names (``task.q_ter_mm``), exactly as ``
 --ros-args --params-file`` does. Libraries declare what they read as :class:`ParamSpec` lists and
 validate a flat dict with :func:`validate`; a wrong-typed or out-of-range value raises
 :class:`~peel_msgs_py.errors.ParameterError` naming the parameter. Nothing here imports ROS.
+
+Typing follows rclpy's static parameter typing: a parameter's type is its default's, so an
+integer is refused for a DOUBLE parameter (``mppi.lambda: 1`` -- write ``1.0``), exactly as a
+node refuses it on a robot (docs/parameters.md).
+
+Unknown names are refused too, by every node and command that reads a parameter file: each
+package registers the parameters its node declares under the entry-point group
+``peel.parameters`` (``<node name> = <module>:<specs>``); :func:`load_param_file` refuses a
+section that names no registered node (nor ``/**``), a name in a node's section that the node
+does not declare, and a ``/**`` name that no node declares.
 """
 
 from __future__ import annotations
@@ -42,17 +52,27 @@ class ParamSpec:
     min: float | None = None
     max: float | None = None
     choices: Sequence[Any] | None = None
+    #: Whether a running node accepts a new value (``set_parameters``); read-only otherwise.
+    dynamic: bool = False
+
+    @property
+    def ros_type(self) -> str:
+        """The ROS 2 parameter type name (``DOUBLE``, ``INTEGER_ARRAY``, ...)."""
+        return ros_type_name(self.default if self.type is list else self.type())
 
     def check(self, value: Any) -> Any:
-        """Return ``value`` coerced to this spec's type, or raise ParameterError naming it."""
-        if self.type is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
+        """Return ``value`` if it fits this spec, else raise ParameterError naming the parameter.
+
+        Types as rclpy checks them: no integer for a DOUBLE, no bool for an INTEGER; a list must
+        hold one element type (that of the default; a list of floats refuses integers too).
+        """
         if self.type is list and isinstance(value, tuple):
             value = list(value)
-        if not isinstance(value, self.type) or (self.type is not bool and isinstance(value, bool)):
+        got, want = ros_type_name(value), self.ros_type
+        if got != want and not (self.type is list and isinstance(value, list) and not value):
             raise ParameterError(
-                f"parameter '{self.name}' must be of type {self.type.__name__}, "
-                f"got {type(value).__name__} ({value!r})"
+                f"parameter '{self.name}': wrong type, expected {want} got {got} ({value!r})"
+                + (" (write a float, e.g. 1.0)" if want == "DOUBLE" and got == "INTEGER" else "")
             )
         if isinstance(value, float) and not math.isfinite(value):
             raise ParameterError(f"parameter '{self.name}' must be finite, got {value!r}")
@@ -65,6 +85,28 @@ class ParamSpec:
                 f"parameter '{self.name}' = {value!r} is not one of {list(self.choices)}"
             )
         return value
+
+
+_SCALAR_TYPES = ((bool, "BOOL"), (int, "INTEGER"), (float, "DOUBLE"), (str, "STRING"))
+
+
+def ros_type_name(value: Any) -> str:
+    """ROS 2 parameter type of a Python value, as rclpy names it (``Parameter.Type``)."""
+    for typ, name in _SCALAR_TYPES:
+        if isinstance(value, typ):
+            return name
+    if isinstance(value, (list, tuple)):
+        kinds = {ros_type_name(v) for v in value}
+        if len(kinds) == 1 and next(iter(kinds)) in ("BOOL", "INTEGER", "DOUBLE", "STRING"):
+            return f"{next(iter(kinds))}_ARRAY"
+        return "BYTE_ARRAY" if not value else "MIXED_ARRAY"
+    return "NOT_SET" if value is None else type(value).__name__
+
+
+#: ``use_sim_time``, which rclpy declares on every node; listed so parameter files may set it.
+USE_SIM_TIME = ParamSpec("use_sim_time", bool, False,
+                         "ROS time from /clock (the simulator's) instead of the system clock",
+                         dynamic=True)
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -83,13 +125,39 @@ def load_param_file(path: str | os.PathLike[str], node_name: str) -> dict[str, A
     """Load the flat parameter dict for ``node_name`` from a ROS 2 parameter YAML file.
 
     Entries under ``/**`` apply to every node; entries under the node's own name (with or
-    without a leading slash) override them.
+    without a leading slash) override them. Unknown sections and names are refused
+    (:func:`check_names`).
     """
     path = Path(path)
+    doc = _read_yaml(path)
+    node_specs(node_name)  # the node's own registry first: /** names are looked up there
+    sections: dict[str, dict[str, Any]] = {}
+    for key, section in doc.items():
+        if not isinstance(section, Mapping) or "ros__parameters" not in section:
+            raise PeelError(f"parameter file {path}: section '{key}' has no ros__parameters")
+        params = section["ros__parameters"] or {}
+        if not isinstance(params, Mapping):
+            raise PeelError(f"parameter file {path}: '{key}.ros__parameters' must be a mapping")
+        sections[str(key)] = flatten(params)
+    check_names(sections, path)
+    merged: dict[str, Any] = {}
+    for key in ("/**", node_name.lstrip("/"), "/" + node_name.lstrip("/")):
+        merged.update(sections.get(key, {}))
+    for name, value in merged.items():
+        if not isinstance(value, _ALLOWED) and value is not None:
+            raise ParameterError(
+                f"parameter '{name}' in {path} has unsupported type {type(value).__name__}"
+            )
+    return merged
+
+
+def _read_yaml(path: Path) -> Mapping[str, Any]:
     try:
-        text = path.read_text()
+        text = path.read_bytes().decode("utf-8")
     except OSError as exc:
         raise PeelError(f"cannot read parameter file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise PeelError(f"parameter file {path} is not UTF-8 text (byte {exc.start})") from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -100,23 +168,105 @@ def load_param_file(path: str | os.PathLike[str], node_name: str) -> dict[str, A
         return {}
     if not isinstance(doc, Mapping):
         raise PeelError(f"parameter file {path} must map node names to ros__parameters")
-    merged: dict[str, Any] = {}
-    for key in ("/**", node_name, "/" + node_name.lstrip("/")):
-        section = doc.get(key)
-        if section is None:
+    return doc
+
+
+#: Entry-point group under which each package registers its node's parameter specs.
+ENTRY_POINT_GROUP = "peel.parameters"
+_registry: dict[str, tuple[ParamSpec, ...]] | None = None
+
+
+def registered_nodes() -> dict[str, Any]:
+    """Node name -> entry point of the ``peel.parameters`` group (nothing imported yet)."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def node_specs(node_name: str) -> tuple[ParamSpec, ...] | None:
+    """Every parameter ``node_name`` declares (its registered specs); None if not registered."""
+    global _registry
+    if _registry is None:
+        _registry = {}
+    name = node_name.lstrip("/")
+    if name not in _registry:
+        ep = registered_nodes().get(name)
+        if ep is None:
+            return None
+        _registry[name] = tuple(ep.load())
+    return _registry[name]
+
+
+def check_names(sections: Mapping[str, Mapping[str, Any]], source: str | os.PathLike[str]
+                ) -> None:
+    """Refuse a section that names no registered node, and names no node declares.
+
+    ``sections`` maps a section key (``/**``, a node name) to its flat parameters. A name in a
+    node's section must be one that node declares; a ``/**`` name one that some node declares.
+    Without any registered node (packages not installed) nothing is checked.
+    """
+    nodes = registered_nodes()
+    if not nodes:
+        return
+    for key, names in sections.items():
+        if key == "/**":
             continue
-        if not isinstance(section, Mapping) or "ros__parameters" not in section:
-            raise PeelError(f"parameter file {path}: section '{key}' has no ros__parameters")
-        params = section["ros__parameters"] or {}
-        if not isinstance(params, Mapping):
-            raise PeelError(f"parameter file {path}: '{key}.ros__parameters' must be a mapping")
-        merged.update(flatten(params))
-    for name, value in merged.items():
-        if not isinstance(value, _ALLOWED) and value is not None:
+        if key.lstrip("/") not in nodes:
             raise ParameterError(
-                f"parameter '{name}' in {path} has unsupported type {type(value).__name__}"
-            )
-    return merged
+                f"unknown node section '{key}' in {source} (known: /**, {', '.join(sorted(nodes))})")
+        known = {s.name for s in node_specs(key) or ()}
+        for name in names:
+            if name not in known:
+                raise ParameterError(f"unknown parameter '{name}' for {key.lstrip('/')} in {source}")
+    # /** names: look in the registries already loaded first (no needless imports)
+    left = set(sections.get("/**", {}))
+    for node in sorted(nodes, key=lambda n: (_registry is None or n not in _registry, n)):
+        if not left:
+            break
+        left -= {s.name for s in node_specs(node) or ()}
+    if left:
+        raise ParameterError(f"unknown parameter '{sorted(left)[0]}' under /** in {source} "
+                             "(no peel node declares it)")
+
+
+def ros_args_overrides(argv: Sequence[str], node_name: str) -> dict[str, Any]:
+    """The parameter overrides ``argv``'s ``--ros-args`` give ``node_name``, checked by name.
+
+    ``--params-file FILE`` (read with :func:`load_param_file`: unknown sections and names are
+    refused) and ``-p``/``--param [node:]name:=value`` (value parsed as YAML, as rcl does; a
+    name the node does not declare is refused). Later arguments win, as in rcl. Types and
+    ranges are left to the node's declaration (rclpy), which names the parameter too.
+    """
+    args = list(argv)
+    out: dict[str, Any] = {}
+    in_ros = False
+    known = {s.name for s in node_specs(node_name) or ()}
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        i += 1
+        if arg == "--ros-args":
+            in_ros = True
+            continue
+        if arg == "--" or not in_ros:
+            in_ros = False if arg == "--" else in_ros
+            continue
+        if arg == "--params-file" and i < len(args):
+            out.update(load_param_file(args[i], node_name))
+            i += 1
+        elif arg in ("-p", "--param") and i < len(args):
+            target, _, value = args[i].partition(":=")
+            i += 1
+            node, _, name = target.rpartition(":")
+            if node and node.lstrip("/") != node_name.lstrip("/"):
+                continue
+            if known and name not in known:
+                raise ParameterError(f"unknown parameter '{name}' for {node_name} (-p {target})")
+            try:
+                out[name] = yaml.safe_load(value) if value else ""
+            except yaml.YAMLError:
+                out[name] = value
+    return out
 
 
 def validate(

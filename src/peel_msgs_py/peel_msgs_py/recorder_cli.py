@@ -83,27 +83,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     writer.open()  # a bag path that cannot be written fails here, before any ROS set-up
 
-    from .recorder_node import RecorderNode
-    from .runtime import rclpy
+    from .recorder_node import record
 
     t0 = time.monotonic()
-    node = None
-    rclpy.init(args=None)
     try:
         with _Stop() as stop:
-            node = RecorderNode(writer, names)
-            print(f"peel record: recording {len(names)} topics to {args.out}", file=sys.stderr,
-                  flush=True)
-            while not stop.requested and rclpy.ok():
-                if args.duration is not None and time.monotonic() - t0 >= args.duration:
-                    break
-                rclpy.spin_once(node, timeout_sec=0.05)
+            record(writer, names, args.duration, stop)
     finally:
         writer.close()
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
     summary = {
         "bag": str(args.out),
         "messages": writer.message_count,

@@ -1,61 +1,117 @@
-"""The recorder node: subscribes to the /peel topics and /clock and writes them to an MCAP bag.
+"""The recorder node: the /peel topics and /clock into an MCAP bag, as received.
 
-Written against rclpy's API through :mod:`peel_msgs_py.runtime`, so it runs on a Jazzy machine
-(rclpy) and on the embedded Cyclone DDS runtime alike. Each topic of the table
-(:mod:`peel_msgs_py.topics`) is subscribed with the profile its publishers offer (``/clock``
-best effort, latched topics transient local so their current value is recorded) and every
-message is stored as CDR bytes with the wall-clock receive time (``time.time_ns()``), as
-``ros2 bag record`` does without ``--use-sim-time``. Chunks are flushed by size and by age
-(:class:`~peel_msgs_py.bag.BagWriter`); a timer ticks the writer so that a quiet topic's open
-chunk still reaches the disk within ``flush_interval_s``.
+Each topic of the table (:mod:`peel_msgs_py.topics`) gets an rclpy *raw* subscription (the
+profile its publishers offer; ``/clock`` best effort, latched topics transient local so their
+current value is recorded), so every message is stored as the CDR bytes that arrived, with its
+receive time (``received_timestamp`` of the message info, ns since the epoch), as ``ros2 bag
+record`` does without ``--use-sim-time``. A topic's channel is registered once its publishers
+are known (a timer polls the graph, a first message forces it): the bag holds the QoS profiles
+they offer and the type hash (RIHS01) they announce, both from their endpoint info; the schema
+text is the Jazzy definition from ``rosbags``' typestore. Chunks are flushed by size and by
+age (:class:`~peel_msgs_py.bag.BagWriter`); the same timer ticks the writer so that a quiet
+topic's open chunk still reaches the disk within ``flush_interval_s``.
 """
 
 from __future__ import annotations
 
+import importlib
+import sys
 import time
 from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
-from .bag import BagWriter
-from .runtime import Node
-from .runtime.msg import get_message_class, serialize
+import rclpy
+from rclpy.node import Node
+
+from .bag import BagWriter, message_definition
+from .ros.qos import profile_to_bag
 from .topics import qos_profile, topic
 
 NODE_NAME = "peel_recorder"
-#: Period of the writer tick (s): time-based chunk flushes and metadata refreshes.
+#: Period of the writer tick (s): graph poll, time-based chunk flushes, metadata refreshes.
 TICK_PERIOD_S = 0.2
 
 
-class RecorderNode(Node):  # type: ignore[misc, valid-type]
-    """Records ``topics`` into an open :class:`BagWriter`."""
+def message_class(type_name: str) -> Any:
+    """The generated class of ``pkg/msg/Type`` (``geometry_msgs.msg.WrenchStamped``)."""
+    pkg, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+
+
+def rihs01(type_hash: Any) -> str | None:
+    """``RIHS01_<hex>`` of an rclpy ``TypeHash`` (None when the publisher announced none)."""
+    if type_hash is None or getattr(type_hash, "version", -1) != 1:
+        return None
+    return "RIHS01_" + bytes(type_hash.value).hex()
+
+
+class RecorderNode(Node):
+    """Records ``topics`` into an open :class:`BagWriter` (module docstring)."""
 
     def __init__(self, writer: BagWriter, topics: Sequence[str], *, name: str = NODE_NAME) -> None:
         super().__init__(name)
         self.writer = writer
         self.received = 0
-        self._subs: list[Any] = []
-        for name_ in topics:
-            spec = topic(name_)
-            cls = get_message_class(spec.type)
-            writer.add_topic(spec.name, spec.type, [spec.qos])
-            self._subs.append(
-                self.create_subscription(
-                    cls, spec.name, partial(self._on_message, spec.name),
-                    qos_profile(spec, subscriber=True),
-                )
-            )
-        self._timer = self.create_timer(TICK_PERIOD_S, self.writer.tick)
+        self.specs = {n: topic(n) for n in topics}
+        self.registered: set[str] = set()
+        for spec in self.specs.values():
+            self.create_subscription(message_class(spec.type), spec.name,
+                                     partial(self.on_message, spec.name),
+                                     qos_profile(spec, subscriber=True), raw=True)
+        self.create_timer(TICK_PERIOD_S, self.on_tick)
 
-    def _on_message(self, topic_name: str, msg: Any) -> None:
-        self.writer.write(topic_name, serialize(msg), time.time_ns())
+    def on_message(self, topic_name: str, data: bytes, info: Any) -> None:
+        if topic_name not in self.registered:
+            self.register(topic_name, force=True)
+        received = int(info.get("received_timestamp", 0)) if isinstance(info, dict) else 0
+        self.writer.write(topic_name, data, received or time.time_ns())
         self.received += 1
+
+    def on_tick(self) -> None:
+        for name in self.specs.keys() - self.registered:
+            self.register(name, force=False)
+        self.writer.tick()
+
+    def register(self, name: str, *, force: bool) -> None:
+        """Add the topic's channel with its publishers' offered QoS and type hash."""
+        spec = self.specs[name]
+        pubs = [p for p in self.get_publishers_info_by_topic(name) if p.topic_type == spec.type]
+        if not pubs and not force:
+            return
+        text, store_hash = message_definition(spec.type)
+        offered = [profile_to_bag(p.qos_profile) for p in pubs] or [spec.qos.to_bag()]
+        announced = {h for h in (rihs01(p.topic_type_hash) for p in pubs) if h}
+        type_hash = sorted(announced)[0] if announced else store_hash
+        if type_hash != store_hash:
+            self.get_logger().warn(f"{name}: publishers announce {type_hash}, the Jazzy "
+                                   f"definition hashes to {store_hash}")
+        self.writer.add_topic(name, spec.type, offered, msgdef=text, rihs01=type_hash)
+        self.registered.add(name)
+
+
+def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
+           stop: Any) -> None:
+    """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``."""
+    t0 = time.monotonic()
+    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = None
+    try:
+        node = RecorderNode(writer, names)
+        print(f"peel record: recording {len(names)} topics to {writer.path}", file=sys.stderr,
+              flush=True)
+        while not stop.requested and rclpy.ok():
+            if duration_s is not None and time.monotonic() - t0 >= duration_s:
+                break
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
 
 
 def main(argv: list[str] | None = None) -> int:
     """Console script for ``ros2 run``: same options as ``peel record`` (``--ros-args`` ignored)."""
-    import sys
-
     from .recorder_cli import run
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -65,6 +121,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
     sys.exit(main())

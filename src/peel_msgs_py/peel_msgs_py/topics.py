@@ -5,8 +5,8 @@ The algorithms work in the paper's units (mm, mm/s); the conversion happens only
 :mod:`peel_msgs_py.units`, called from node code, :mod:`peel_msgs_py.codec` and the bag readers.
 
 QoS profiles are plain, hashable :class:`QosSpec` values so that this module imports no ROS;
-:func:`qos_profile` turns one into the selected runtime's ``QoSProfile`` (rclpy's or the embedded
-one) and :meth:`QosSpec.to_bag` into the ``offered_qos_profiles`` entry rosbag2 writes.
+:func:`qos_profile` turns one into rclpy's ``QoSProfile`` (:mod:`peel_msgs_py.ros.qos`) and
+:meth:`QosSpec.to_bag` into the ``offered_qos_profiles`` entry rosbag2 writes.
 
 Choices (docs/interfaces.md gives the reasons at length):
 
@@ -204,26 +204,18 @@ def topic(name: str) -> TopicSpec:
 
 
 def qos_profile(spec: QosSpec | TopicSpec | str, *, subscriber: bool = False) -> Any:
-    """The runtime ``QoSProfile`` for a spec, a topic spec or a topic name.
+    """rclpy's ``QoSProfile`` for a spec, a topic spec or a topic name.
 
     ``subscriber=True`` gives the profile a subscriber should use (:attr:`TopicSpec.sub_qos`).
-    Imports ``peel_msgs_py.runtime.qos`` (rclpy's ``rclpy.qos`` or the embedded one) on call.
+    Imports rclpy (through :mod:`peel_msgs_py.ros.qos`) on call.
     """
     if isinstance(spec, str):
         spec = topic(spec)
     if isinstance(spec, TopicSpec):
         spec = spec.sub_qos if subscriber else spec.qos
-    from .runtime.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from .ros.qos import to_profile
 
-    return QoSProfile(
-        history=(HistoryPolicy.KEEP_LAST if spec.history == KEEP_LAST
-                 else HistoryPolicy.KEEP_ALL),
-        depth=spec.depth,
-        reliability=(ReliabilityPolicy.RELIABLE if spec.reliability == RELIABLE
-                     else ReliabilityPolicy.BEST_EFFORT),
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if spec.durability == TRANSIENT_LOCAL
-                    else DurabilityPolicy.VOLATILE),
-    )
+    return to_profile(spec)
 
 
 def markdown_table() -> str:

@@ -1,297 +1,199 @@
-"""``peel_sim_node``: the simulator / plant bridge node of the graph (issue 7, docs/graph.md).
+"""``peel_sim_node``: the simulator / plant bridge node of the graph (docs/graph.md).
 
-Runs ``node.tasks`` consecutive peeling tasks on :class:`peel_sim_node.env.PeelEnv` (``sim`` or
-``plant``) and owns the clock:
-
-* every sample (dt = 0.1 s, section 4.2) it publishes ``/clock`` and the measured state on
-  ``/peel/wrench``, ``/peel/twist``, ``/peel/pose`` (SI, stamped with the sample's ROS time);
-* at every control instant (every 5th sample, 0.5 s) it waits for the ``/peel/cmd_vel`` whose
-  ``header.stamp`` equals the stamp of that sample (lockstep), then applies it with
-  ``PeelEnv.step`` for the next control period. A missing answer is logged and the sample is
-  sent again every ``node.cmd_timeout_s``; after ``node.cmd_give_up_s`` the task is aborted;
-* each finished task goes out on ``/peel/trajectory`` (trajectory codec) with its outcome.
-
-Task ``i`` occupies ROS time ``[i * node.task_slot_s, (i + 1) * node.task_slot_s)``; inside the
-trajectory the time restarts at 0. Between tasks the node waits (``node.wait_model_s``) for the
-learner's new model version, as the paper's loop does (Algorithm 2 line 20).
-
-This module is a thin adapter: the physics is the library's, units go through
-:mod:`peel_msgs_py.units` / :mod:`peel_msgs_py.codec`.
+Runs ``node.tasks`` consecutive tasks (:class:`~peel_sim_node.lockstep.TaskSequence` on
+:class:`~peel_sim_node.env.PeelEnv`, ``sim`` or ``plant``) and owns the clock: every sample
+(dt = 0.1 s, section 4.2) it publishes ``/clock`` and the measured state on ``/peel/wrench``,
+``/peel/twist``, ``/peel/pose`` (SI, stamped with the sample's ROS time, frame
+``peel_task_<k>``); each control sample waits for the ``/peel/cmd_vel`` that answers its stamp
+(lockstep); each finished task goes out on ``/peel/trajectory``. A wall-clock timer re-sends an
+unanswered sample every ``node.cmd_timeout_s``, aborts the task after ``node.cmd_give_up_s``,
+and between tasks waits (``node.wait_model_s``) for the learner's new model version, as the
+paper's loop does (Algorithm 2 line 20).
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable
 from typing import Any
 
-import numpy as np
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import Float64MultiArray, Int64
 
-from peel_msgs_py.params import ParamSpec, validate_group
-from peel_msgs_py.trajectory import Trajectory
+from peel_msgs_py import codec, topics
+from peel_msgs_py.ros.main import run_node
+from peel_msgs_py.ros.messages import stamp, stamp_ns, trajectory_msg
+from peel_msgs_py.ros.parameters import declare
+from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 
-NODE_NAME = "peel_sim_node"
+from .config import SimConfig
+from .lockstep import Sample, TaskSequence
+from .parameters import LIBRARY_SPECS, NODE_NAME, SPECS
 
-#: Node-only parameters (``node:`` group of config/peel_sim_node.yaml); wall-clock timeouts.
-NODE_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("node.source", str, "sim", "run the simulator or the plant", choices=("sim", "plant")),
-    ParamSpec("node.tasks", int, 3, "consecutive tasks to run; 0 = until stopped", min=0),
-    ParamSpec("node.seed", int, 0, "seed of the task sequence (as peel experiment's)", min=0),
-    ParamSpec("node.task_slot_s", float, 100.0, "ROS time reserved per task, s", min=1.0),
-    ParamSpec("node.cmd_timeout_s", float, 2.0, "wall s before the sample is re-sent", min=0.01),
-    ParamSpec("node.cmd_give_up_s", float, 120.0, "wall s before the task is aborted", min=0.1),
-    ParamSpec("node.wait_model_s", float, 120.0,
-              "wall s to wait for the learner's new model between tasks; 0 = do not", min=0.0),
-    ParamSpec("node.wait_planner_s", float, 120.0,
-              "wall s to wait for the planner's /peel/model_version before task 1", min=0.0),
-    ParamSpec("node.min_subscribers", int, 1,
-              "wait for this many subscribers of /peel/wrench before task 1", min=0),
-    ParamSpec("node.min_traj_subscribers", int, 1,
-              "wait for this many subscribers of /peel/trajectory before task 1 (learner, "
-              "launcher, recorder)", min=0),
-    ParamSpec("node.exit_when_done", bool, False,
-              "exit after the last task (and its model update); for ros2 launch"),
-)
+#: Period (s, wall clock) of the timer that drives waiting, re-sending and giving up.
+TICK_S = 0.05
 
 
-def node_params(flat: dict[str, Any]) -> dict[str, Any]:
-    """Validate the ``node.*`` parameters of a flat parameter dict (others are ignored)."""
-    return validate_group(NODE_SPECS, flat, "node")
+def library_params(values: dict[str, Any]) -> dict[str, Any]:
+    """The declared values the library reads (not the node's, nor rclpy's own)."""
+    names = {s.name for s in LIBRARY_SPECS}
+    return {k: v for k, v in values.items() if k in names}
 
 
-def library_params(flat: dict[str, Any]) -> dict[str, Any]:
-    """The flat dict without the node-only and ROS-only names, for the library's config."""
-    return {k: v for k, v in flat.items() if not k.startswith("node.") and k != "use_sim_time"}
+class SimNode(Node):
+    """Publishers, subscriptions and a wall-clock timer around a :class:`TaskSequence`."""
 
-
-def all_parameters(node: Any) -> dict[str, Any]:
-    """Every declared parameter of ``node`` as a flat ``name -> value`` dict (rclpy API)."""
-    return {name: p.value for name, p in node.get_parameters_by_prefix("").items()}
-
-
-def task_seed(seed: int, k: int) -> int:
-    """Sensor-noise and planner-noise seed of task ``k``; the same derivation as ``peel
-    experiment`` (peel_bringup.experiment.task_seed, stream 0), so a graph run and an experiment
-    with the same seed peel the same substrates with the same noise."""
-    return int(np.random.SeedSequence([seed, 0, k]).generate_state(1)[0])
-
-
-def task_params(cfg: Any, seed: int, k: int, source: str) -> dict[str, float]:
-    """Physical parameters of task ``k`` (3.2.1 intervals), as peel_bringup.experiment.substrates."""
-    from .env import sample_params
-
-    return dict(sample_params(cfg, np.random.default_rng([seed, 0, k]), source))
-
-
-def to_ns(t_s: float) -> int:
-    """Seconds of ROS time -> integer nanoseconds (exact comparisons of stamps)."""
-    return round(t_s * 1e9)
-
-
-class SimNode:
-    """The node: publishers, subscriptions and the task loop (run from :func:`main`)."""
-
-    def __init__(self, args: list[str] | None = None) -> None:
-        from peel_msgs_py import codec, topics
-        from peel_msgs_py.runtime import Node
-        from peel_msgs_py.runtime.msg import (
-            Clock,
-            Float64MultiArray,
-            Int64,
-            PoseStamped,
-            TwistStamped,
-            WrenchStamped,
-        )
-
-        from .config import SimConfig
-        from .env import PeelEnv
-
-        self.codec, self.topics = codec, topics
-        self.msg = {"clock": Clock, "wrench": WrenchStamped, "twist": TwistStamped,
-                    "pose": PoseStamped}
-        self.node = Node(NODE_NAME, automatically_declare_parameters_from_overrides=True)
-        flat = all_parameters(self.node)
-        self.p = node_params(flat)
-        self.cfg = SimConfig.from_params(library_params(flat))
-        self.steps = self.cfg.samples_per_control
-        self.env = PeelEnv(self.cfg, source=self.p["node.source"],
-                           seed=task_seed(self.p["node.seed"], 0))
-        n = self.node
+    def __init__(self) -> None:
+        super().__init__(NODE_NAME)
+        values = declare(self, SPECS)
+        self.p = {k: v for k, v in values.items() if k.startswith("node.")}
+        self.seq = TaskSequence(SimConfig.from_params(library_params(values)),
+                                source=self.p["node.source"], seed=self.p["node.seed"],
+                                task_slot_s=self.p["node.task_slot_s"])
         qos = topics.qos_profile
-        self.pub_clock = n.create_publisher(Clock, topics.CLOCK, qos(topics.CLOCK))
-        self.pub_wrench = n.create_publisher(WrenchStamped, topics.WRENCH, qos(topics.WRENCH))
-        self.pub_twist = n.create_publisher(TwistStamped, topics.TWIST, qos(topics.TWIST))
-        self.pub_pose = n.create_publisher(PoseStamped, topics.POSE, qos(topics.POSE))
-        self.pub_traj = n.create_publisher(
-            Float64MultiArray, topics.TRAJECTORY, qos(topics.TRAJECTORY))
-        self.cmds: dict[int, float] = {}  # stamp (ns) -> command (mm/s)
+        self.pub_clock = self.create_publisher(ClockMsg, topics.CLOCK, qos(topics.CLOCK))
+        self.pub_wrench = self.create_publisher(WrenchStamped, topics.WRENCH, qos(topics.WRENCH))
+        self.pub_twist = self.create_publisher(TwistStamped, topics.TWIST, qos(topics.TWIST))
+        self.pub_pose = self.create_publisher(PoseStamped, topics.POSE, qos(topics.POSE))
+        self.pub_traj = self.create_publisher(Float64MultiArray, topics.TRAJECTORY,
+                                              qos(topics.TRAJECTORY))
+        self.create_subscription(TwistStamped, topics.CMD_VEL, self.on_cmd,
+                                 qos(topics.CMD_VEL, subscriber=True))
+        self.create_subscription(Int64, topics.MODEL_VERSION, self.on_version,
+                                 to_profile(topics.topic(topics.MODEL_VERSION).sub_qos))
+        self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.model_version: int | None = None
-        self.frame_id = codec.task_frame_id(0)
-        self.versions_seen: list[int] = []
-        n.create_subscription(TwistStamped, topics.CMD_VEL, self._on_cmd,
-                              qos(topics.CMD_VEL, subscriber=True))
-        n.create_subscription(Int64, topics.MODEL_VERSION, self._on_version,
-                              qos(topics.MODEL_VERSION, subscriber=True))
-        self.log = n.get_logger()
+        self.versions_seen: set[int] = set()
+        self.version_at_start: int | None = None
+        self.start_version = 0
+        self.finished_tasks = 0
+        self.phase, self.since = "wait_graph", time.monotonic()
+        self.sent = self.asked = self.since  # last publication; first sending of the waiting one
+        self.done, self.exit_status = False, 0
+        self.get_logger().info(f"{self.p['node.source']} ready: {self.p['node.tasks']} tasks, "
+                               f"seed {self.p['node.seed']}")
 
     # -- callbacks ---------------------------------------------------------------------------
-    def _on_cmd(self, msg: Any) -> None:
-        stamp = msg.header.stamp
-        self.cmds[int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)] = float(
-            mps_to_mmps(msg.twist.linear.x))
-        if len(self.cmds) > 64:
-            for key in sorted(self.cmds)[:-32]:
-                del self.cmds[key]
+    def on_cmd(self, msg: TwistStamped) -> None:
+        samples = self.seq.apply(stamp_ns(msg.header.stamp), mps_to_mmps(msg.twist.linear.x))
+        if samples is None:
+            return
+        for s in samples:
+            self.publish(s)
+        self.asked = time.monotonic()
+        if self.seq.ended:
+            self.end_task(None)
 
-    def _on_version(self, msg: Any) -> None:
+    def on_version(self, msg: Int64) -> None:
         self.model_version = int(msg.data)
-        self.versions_seen.append(int(msg.data))
+        self.versions_seen.add(int(msg.data))
 
-    # -- helpers -----------------------------------------------------------------------------
-    def spin_until(self, cond: Callable[[], bool], timeout_s: float) -> bool:
-        """Process callbacks until ``cond()`` holds or ``timeout_s`` (wall) passes."""
-        from peel_msgs_py.runtime import rclpy
+    def on_tick(self) -> None:
+        waited = time.monotonic() - self.since
+        if self.phase == "wait_graph":
+            self.wait_graph(waited)
+        elif self.phase == "running":
+            self.check_lockstep(waited)
+        elif self.phase == "between":
+            self.wait_model(waited)
 
-        deadline = time.monotonic() + timeout_s
-        while not cond():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return cond()
-            rclpy.spin_once(self.node, timeout_sec=min(0.05, left))
-        return True
+    # -- phases ------------------------------------------------------------------------------
+    def set_phase(self, phase: str) -> None:
+        self.phase, self.since = phase, time.monotonic()
 
-    def publish_sample(self, t0_s: float, k: int) -> int:
-        """Publish /clock and the state of sample ``k`` of the current task; return its stamp.
+    def wait_graph(self, waited: float) -> None:
+        """Before task 1: the planner's model version and enough subscribers (or time out)."""
+        missing = []
+        if self.model_version is None:
+            missing.append(f"{topics.MODEL_VERSION} from the planner")
+        for pub, want, name in ((self.pub_wrench, self.p["node.min_subscribers"], topics.WRENCH),
+                                (self.pub_traj, self.p["node.min_traj_subscribers"],
+                                 topics.TRAJECTORY)):
+            if pub.get_subscription_count() < want:
+                missing.append(f"{want} subscribers of {name}")
+        if missing and waited < self.p["node.wait_planner_s"]:
+            return
+        if missing:
+            self.get_logger().warn(f"starting without {', '.join(missing)}")
+        self.start_version = self.model_version or 0
+        self.start_task()
 
-        ``header.frame_id`` = ``peel_task_<i>`` (:func:`peel_msgs_py.codec.task_frame_id`) tells
-        subscribers which task the sample belongs to."""
-        h = self.env.history
-        stamp_ns = to_ns(t0_s + float(h.t[k]))
-        m = self.msg
-        clock, wrench, twist, pose = m["clock"](), m["wrench"](), m["twist"](), m["pose"]()
-        clock.clock.sec, clock.clock.nanosec = divmod(stamp_ns, 1_000_000_000)
+    def start_task(self) -> None:
+        self.version_at_start = self.model_version
+        self.publish(self.seq.start(self.finished_tasks))
+        self.set_phase("running")
+        self.asked = time.monotonic()
+
+    def check_lockstep(self, _: float) -> None:
+        """No answer to the waiting sample: re-send it, or abort the task after the give-up."""
+        if time.monotonic() - self.sent < self.p["node.cmd_timeout_s"]:
+            return
+        last, waited = self.seq.last(), time.monotonic() - self.asked
+        if waited >= self.p["node.cmd_give_up_s"]:
+            self.get_logger().error(f"no {topics.CMD_VEL} for t={last.stamp_ns / 1e9:.1f} s "
+                                    f"after {waited:.1f} s; aborting the task")
+            self.end_task("aborted")
+            return
+        self.get_logger().warn(f"lockstep: no {topics.CMD_VEL} answering t="
+                               f"{last.stamp_ns / 1e9:.1f} s; re-sending the sample")
+        self.publish(last)
+
+    def end_task(self, outcome: str | None) -> None:
+        traj = self.seq.finish({"model_version": self.version_at_start,
+                                "model_versions": sorted(self.versions_seen)}, outcome)
+        self.pub_traj.publish(trajectory_msg(traj))
+        self.finished_tasks += 1
+        self.get_logger().info(f"task {self.finished_tasks}: {traj.outcome}, "
+                               f"T_cpl={traj.t_cpl:.1f} s, model v{self.version_at_start}")
+        self.set_phase("between")
+
+    def wait_model(self, waited: float) -> None:
+        """Between tasks: the learner's update of the last task (Algorithm 2 line 20)."""
+        want = self.start_version + self.finished_tasks
+        wait_s = self.p["node.wait_model_s"]
+        arrived = (self.model_version or 0) >= want
+        all_done = 0 < self.p["node.tasks"] <= self.finished_tasks
+        if not arrived and wait_s > 0 and waited < wait_s:
+            return
+        if not arrived and wait_s > 0:
+            self.get_logger().warn(f"model version {want} did not arrive within {wait_s:g} s")
+        if not all_done:
+            self.start_task()
+            return
+        self.get_logger().info(f"all {self.finished_tasks} tasks done")
+        self.set_phase("finished")
+        # ros2 launch: exit; peel graph: stay up until stopped, so the bag gets everything
+        self.done = bool(self.p["node.exit_when_done"])
+
+    # -- publishing --------------------------------------------------------------------------
+    def publish(self, s: Sample) -> None:
+        """``/clock`` and the state of one sample (SI, REP-103)."""
+        t = stamp(s.stamp_ns)
+        frame = codec.task_frame_id(s.task)
+        wrench, twist, pose = WrenchStamped(), TwistStamped(), PoseStamped()
         for msg in (wrench, twist, pose):
-            msg.header.stamp.sec, msg.header.stamp.nanosec = clock.clock.sec, clock.clock.nanosec
-            msg.header.frame_id = self.frame_id
-        wrench.wrench.force.x = float(h.fx[k])
-        wrench.wrench.force.z = float(h.fz[k])
-        twist.twist.linear.x = float(mmps_to_mps(float(h.v[k])))
-        pose.pose.position.x = float(mm_to_m(float(h.q[k])))
-        self.pub_clock.publish(clock)
+            msg.header.stamp, msg.header.frame_id = t, frame
+        wrench.wrench.force.x, wrench.wrench.force.z = s.fx_n, s.fz_n
+        twist.twist.linear.x = mmps_to_mps(s.v_mmps)
+        pose.pose.position.x = mm_to_m(s.q_mm)
+        self.pub_clock.publish(ClockMsg(clock=t))
         self.pub_wrench.publish(wrench)
         self.pub_twist.publish(twist)
         self.pub_pose.publish(pose)
-        return stamp_ns
+        self.sent = time.monotonic()
 
-
-    def wait_command(self, t0_s: float, k: int) -> float | None:
-        """Lockstep: wait for the command answering sample ``k``; re-send the sample on timeout."""
-        stamp_ns = to_ns(t0_s + float(self.env.history.t[k]))
-        start = time.monotonic()
-        while True:
-            if self.spin_until(lambda: stamp_ns in self.cmds, self.p["node.cmd_timeout_s"]):
-                return self.cmds.pop(stamp_ns)
-            waited = time.monotonic() - start
-            if waited >= self.p["node.cmd_give_up_s"]:
-                self.log.error(f"no /peel/cmd_vel for t={stamp_ns / 1e9:.1f} s after "
-                               f"{waited:.1f} s; aborting the task")
-                return None
-            self.log.warn(f"lockstep: no /peel/cmd_vel answering t={stamp_ns / 1e9:.1f} s after "
-                          f"{waited:.1f} s (wall); re-sending the sample")
-            self.publish_sample(t0_s, k)
-
-    def run_task(self, index: int) -> Trajectory:
-        """One task in lockstep with the planner; returns the finished trajectory."""
-        t0_s = index * self.p["node.task_slot_s"]
-        version_at_start = self.model_version
-        seed, source = self.p["node.seed"], self.p["node.source"]
-        self.env.reset(seed=task_seed(seed, index),
-                       params=task_params(self.cfg, seed, index, source))
-        k = len(self.env.history) - 1
-        self.frame_id = self.codec.task_frame_id(index)
-        self.publish_sample(t0_s, k)
-        outcome_override = None
-        while not self.env.done:
-            u = self.wait_command(t0_s, k)
-            if u is None:
-                outcome_override = "aborted"
-                break
-            for _ in range(self.steps):
-                self.env.step(u)
-                k = len(self.env.history) - 1
-                self.publish_sample(t0_s, k)
-                if self.env.done:
-                    break
-        traj = self.env.history
-        if outcome_override is not None:
-            traj = traj.slice(0, len(traj))
-            traj.outcome = outcome_override
-        traj.meta.update({
-            "source": self.p["node.source"], "seed": self.p["node.seed"], "task_index": index,
-            "task_seed": task_seed(self.p["node.seed"], index),
-            "t0_ros_s": t0_s, "model_version": version_at_start,
-            "model_versions": sorted(set(self.versions_seen)),
-        })
-        return traj
-
-    def run(self) -> int:
-        """All tasks; returns the exit status."""
-        p = self.p
-        if p["node.wait_planner_s"] > 0 and not self.spin_until(
-                lambda: self.model_version is not None, p["node.wait_planner_s"]):
-            self.log.warn("no /peel/model_version from the planner yet; starting anyway")
-        if p["node.min_subscribers"] > 0 and not self.spin_until(
-                lambda: self.pub_wrench.get_subscription_count() >= p["node.min_subscribers"],
-                p["node.wait_planner_s"]):
-            self.log.warn(f"fewer than {p['node.min_subscribers']} subscribers on "
-                          f"{self.topics.WRENCH}; starting anyway")
-        for pub, want in ((self.pub_traj, p["node.min_traj_subscribers"]),):
-            if want > 0 and not self.spin_until(
-                    lambda pub=pub, want=want: pub.get_subscription_count() >= want,
-                    p["node.wait_planner_s"]):
-                self.log.warn(f"fewer than {want} subscribers on {self.topics.TRAJECTORY}; "
-                              "starting anyway")
-        start_version = self.model_version or 0
-        index = 0
-        while p["node.tasks"] == 0 or index < p["node.tasks"]:
-            if index > 0 and p["node.wait_model_s"] > 0:
-                want = start_version + index
-                if not self.spin_until(
-                        lambda want=want: (self.model_version or 0) >= want,
-                        p["node.wait_model_s"]):
-                    self.log.warn(f"model version {want} did not arrive within "
-                                  f"{p['node.wait_model_s']:g} s; next task runs with version "
-                                  f"{self.model_version}")
-            traj = self.run_task(index)
-            self.pub_traj.publish(self.codec.trajectory_to_msg(traj))
-            self.log.info(f"task {index + 1}: {traj.outcome}, T_cpl={traj.t_cpl:.1f} s, "
-                          f"model v{traj.meta['model_version']}")
-            index += 1
-        self.log.info(f"all {index} tasks done")
-        if p["node.exit_when_done"]:
-            if p["node.wait_model_s"] > 0:
-                self.spin_until(lambda: (self.model_version or 0) >= start_version + index,
-                                p["node.wait_model_s"])
-            return 0
-        # stay up (the launcher stops the graph) so late subscribers and the bag get everything
-        from peel_msgs_py.runtime import rclpy
-
-        while rclpy.ok():
-            rclpy.spin_once(self.node, timeout_sec=0.2)
-        return 0
-
-    def close(self) -> None:
-        self.env.close()
-        self.node.destroy_node()
+    def destroy_node(self) -> None:
+        self.seq.close()
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``peel_sim_node`` (``--ros-args --params-file ... -p ...``)."""
-    from peel_msgs_py.runtime.entry import run_node
-
-    return run_node(NODE_NAME, SimNode, lambda node: node.run(), args)
+    return run_node(NODE_NAME, SimNode, args)
 
 
 if __name__ == "__main__":

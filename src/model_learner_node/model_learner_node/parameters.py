@@ -1,0 +1,39 @@
+"""Every parameter ``model_learner_node`` declares, as plain data (no ROS): the model
+architecture (3.1), offline training (Eq. 23-25), MAML (Eq. 26-27, Algorithm 1), baseline 2 and
+the node's own ``node.*`` group. Registered under the ``peel.parameters`` entry point, so
+``peel train`` and the node refuse the same unknown names. All read-only at run time.
+"""
+
+from __future__ import annotations
+
+from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
+
+from .config import MODEL_SPECS, TRAIN_SPECS
+
+NODE_NAME = "model_learner_node"
+
+#: Node-only parameters (``node:`` group of config/model_learner_node.yaml).
+NODE_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("node.init_model", str, "", "checkpoint to start from; empty = the shipped one"),
+    ParamSpec("node.out_dir", str, "runs/models", "where model_vNNNN.safetensors are written"),
+    ParamSpec("node.method", str, "maml", "maml = Algorithm 1; retrain = baseline 2",
+              choices=("maml", "retrain")),
+    ParamSpec("node.planner_node", str, "/peel_planner_node", "node whose model.path is set"),
+    ParamSpec("node.swap_timeout_s", float, 60.0, "wall s to wait for the swap answer", min=0.1),
+    ParamSpec("node.pool_capacity", int, 0, "replay pool size in trajectories; 0 = all", min=0),
+    ParamSpec("node.threads", int, 1, "torch CPU threads of the learner process", min=1),
+)
+
+
+def _specs() -> tuple[ParamSpec, ...]:
+    from .baselines2 import BASELINE2_SPECS
+    from .maml import MAML_SPECS
+
+    return (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *BASELINE2_SPECS, *NODE_SPECS, USE_SIM_TIME)
+
+
+def __getattr__(name: str) -> tuple[ParamSpec, ...]:
+    """``SPECS`` on first use: the MAML and baseline-2 groups live beside torch code."""
+    if name == "SPECS":
+        return _specs()
+    raise AttributeError(name)

@@ -1,1 +1,0 @@
-"""The embedded ROS 2 runtime: rclpy's API on Cyclone DDS (see docs/runtime.md)."""

@@ -1,0 +1,148 @@
+"""The planner node's work without ROS: assemble state samples from the three state topics and
+run one OL-MPPI cycle at every control instant (docs/graph.md, "Time and lockstep").
+
+* :class:`StateAssembler`: ``/peel/wrench``, ``/peel/twist`` and ``/peel/pose`` arrive as
+  separate messages in any order; a sample is complete when all three parts with the same stamp
+  are in (whichever arrives last completes it).
+* :class:`ControlLoop`: per task (a new ``peel_task_<k>`` frame) a fresh
+  :class:`~peel_planner_node.mppi.Planner` with ``mppi.seed`` from ``(seed, k)`` as
+  ``peel experiment`` does; at every 5th sample (2 Hz of simulated time) one
+  :meth:`Planner.plan` (Algorithm 2) on the task's history; between control instants only the
+  20 N prewarning and t_max (:class:`~peel_planner_node.safety.SafetyMonitor`), answered at
+  once with a zero command. A re-sent sample (same stamp) gets the answer already computed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from peel_msgs_py.trajectory import Trajectory
+
+from .config import PlannerConfig
+from .cost import Cost
+from .mppi import Planner
+
+#: Leftover incomplete samples kept at most (a lost part never completes its sample).
+_MAX_PARTIAL = 50
+
+
+@dataclass(frozen=True)
+class StateSample:
+    """One complete state sample in the paper's units."""
+
+    stamp_ns: int
+    task: int
+    q_mm: float
+    v_mmps: float
+    fx_n: float
+    fz_n: float
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A command for the sample ``stamp_ns``; ``note`` is a line worth logging, if any."""
+
+    stamp_ns: int
+    task: int
+    u_mmps: float
+    note: str | None = None
+
+
+class StateAssembler:
+    """Collects the parts of each stamp; returns the sample when its last part arrives."""
+
+    PARTS = frozenset({"fx_n", "fz_n", "v_mmps", "q_mm"})
+
+    def __init__(self) -> None:
+        self.partial: dict[int, dict[str, Any]] = {}
+
+    def add(self, stamp_ns: int, task: int, **parts: float) -> StateSample | None:
+        """Add ``parts`` (some of q_mm, v_mmps, fx_n, fz_n) of the sample ``stamp_ns``."""
+        d = self.partial.setdefault(stamp_ns, {"task": task})
+        d.update(parts)
+        if not d.keys() >= self.PARTS:
+            if len(self.partial) > _MAX_PARTIAL:
+                for key in sorted(self.partial)[: -_MAX_PARTIAL // 2]:
+                    del self.partial[key]
+            return None
+        del self.partial[stamp_ns]
+        return StateSample(stamp_ns, d["task"], d["q_mm"], d["v_mmps"], d["fx_n"], d["fz_n"])
+
+
+def task_seed(seed: int, k: int) -> int:
+    """``mppi.seed`` of task ``k`` (the derivation of ``peel experiment``)."""
+    return int(np.random.SeedSequence([seed, 0, k]).generate_state(1)[0]) % (2**31)
+
+
+class ControlLoop:
+    """OL-MPPI on assembled samples (module docstring). ``dynamics`` may be swapped any time
+    between two calls (:meth:`set_dynamics`); ``cfg`` changes apply from the next task."""
+
+    def __init__(self, cfg: PlannerConfig, dynamics: Any, seed: int) -> None:
+        self.cfg, self.seed = cfg, int(seed)
+        self.dt_ns = round(cfg.cost.dt_s * 1e9)
+        self.steps = cfg.mppi.steps_per_horizon_step
+        self.planner = Planner(dynamics, Cost(cfg.cost), cfg)
+        self.task = -1
+        self.t0_ns = 0
+        self.last_ns: int | None = None
+        self.rows: list[list[float]] = []  # t, q, v, u, fx, fz, psi of the current task
+        self.answered: dict[int, float] = {}
+        self.u_hold = 0.0
+        self.cycles = 0
+
+    def set_dynamics(self, dynamics: Any) -> None:
+        self.planner.set_dynamics(dynamics)
+
+    def probe_rows(self) -> np.ndarray | None:
+        """Measured (q_mm, v_mmps, fx_N, fz_N) rows of the current task, for a probe batch."""
+        if not self.rows:
+            return None
+        rows = np.asarray(self.rows, dtype=np.float64)
+        return np.stack([rows[:, 1], rows[:, 2], rows[:, 4], rows[:, 5]], axis=1)
+
+    def on_sample(self, s: StateSample) -> Answer | None:
+        """Extend the history with ``s``; plan at a control instant (module docstring)."""
+        if self.last_ns is not None and s.stamp_ns <= self.last_ns:
+            u = self.answered.get(s.stamp_ns)  # a re-sent sample: repeat the answer
+            return None if u is None else Answer(s.stamp_ns, self.task, u)
+        note = self.new_task(s) if s.task != self.task else None
+        self.last_ns = s.stamp_ns
+        t = (s.stamp_ns - self.t0_ns) / 1e9
+        self.rows.append([t, s.q_mm, s.v_mmps, self.u_hold, s.fx_n, s.fz_n, float("nan")])
+        if round((s.stamp_ns - self.t0_ns) / self.dt_ns) % self.steps == 0:
+            return self.plan(s, note)
+        if self.planner.stop is not None:
+            return None
+        stop = self.planner.safety.check_sample(t, s.q_mm, s.fx_n, s.fz_n)
+        if stop is None or stop.reason == "done":
+            return None
+        self.answered[s.stamp_ns] = 0.0
+        return Answer(s.stamp_ns, self.task, 0.0, f"task {self.task + 1}: blade stopped "
+                      f"({stop.reason} at t={stop.t:.1f} s, between control instants)")
+
+    def new_task(self, s: StateSample) -> str:
+        """A fresh planner for task ``s.task`` with the current model and configuration."""
+        cfg = self.cfg.replace(**{"mppi.seed": task_seed(self.seed, s.task)})
+        self.planner = Planner(self.planner.dynamics, Cost(cfg.cost), cfg)
+        self.planner.reset()
+        self.task, self.t0_ns = s.task, s.stamp_ns
+        self.rows, self.answered, self.u_hold = [], {}, 0.0
+        return f"task {s.task + 1} starts at ROS time {s.stamp_ns / 1e9:.1f} s"
+
+    def plan(self, s: StateSample, note: str | None) -> Answer:
+        """One OL-MPPI cycle (Algorithm 2) on the history up to ``s``."""
+        history = Trajectory.from_array(np.asarray(self.rows, dtype=np.float64))
+        was_stopped = self.planner.stop is not None
+        u = float(self.planner.plan(history))
+        self.cycles += 1
+        self.u_hold = u
+        self.rows[-1][3] = u
+        self.answered[s.stamp_ns] = u
+        stop = self.planner.stop
+        if stop is not None and not was_stopped:
+            note = f"task {self.task + 1}: blade stopped ({stop.reason} at t={stop.t:.1f} s)"
+        return Answer(s.stamp_ns, self.task, u, note)
