@@ -25,23 +25,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from peel_msgs_py.params import ParamSpec, load_node_params, validate_group
+from peel_msgs_py.params import load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
 
-from .config import TrainConfig
+from .config import BASELINE2_SPECS, TrainConfig
 from .maml import model_loss_fn, pool_trajectories, sample_batch
 from .replay import ReplayPool
 from .windows import Windows
-
-#: Parameters of the ``baseline2:`` group of config/model_learner_node.yaml (section 4.4).
-BASELINE2_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("baseline2.steps", int, 20, "Adam steps per update", min=1),
-    ParamSpec("baseline2.lr", float, 1.0e-3, "Adam learning rate", min=0.0),
-    ParamSpec("baseline2.batch_slices", int, 64, "slices per mini-batch", min=1),
-    ParamSpec("baseline2.slice_len", int, 0, "samples per slice; 0 = model h + 1", min=0),
-    ParamSpec("baseline2.grad_clip", float, 1.0, "gradient-norm clip; 0 = off", min=0.0),
-    ParamSpec("baseline2.seed", int, 0, "seed of the slice sampling", min=0),
-)
 
 
 @dataclass(frozen=True)

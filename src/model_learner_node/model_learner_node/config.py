@@ -47,6 +47,40 @@ TRAIN_SPECS: list[ParamSpec] = [
 ]
 
 
+#: Parameters of the ``maml:`` group of config/model_learner_node.yaml (Eq. 26-27).
+MAML_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("maml.alpha", float, 1.0e-3, "inner step size alpha (Eq. 26)", min=0.0),
+    ParamSpec("maml.beta", float, 1.0e-3, "meta step size beta (Eq. 27)", min=0.0),
+    ParamSpec("maml.m", int, 4, "M trajectories from the replay pool (Algorithm 1 step 4)", min=0),
+    ParamSpec("maml.support_slices", int, 32, "slices per support set D_new, D_i", min=1),
+    ParamSpec("maml.query_slices", int, 32, "slices per query set D'_new, D'_i", min=1),
+    ParamSpec("maml.slice_len", int, 0,
+              "samples per slice (Fig. 6); 0 = the model's history h + 1", min=0),
+    ParamSpec("maml.inner_steps", int, 1, "gradient steps of Eq. 26 per task", min=1),
+    ParamSpec("maml.meta_steps", int, 5, "meta steps (Eq. 27) per update", min=1),
+    ParamSpec("maml.first_order", bool, False, "drop second-order terms (FOMAML)"),
+    ParamSpec("maml.optimizer", str, "sgd", "meta step rule: sgd = Eq. 27, adam = Adam(beta)",
+              choices=("sgd", "adam")),
+    ParamSpec("maml.grad_clip", float, 0.0, "clip the meta-gradient norm; 0 = off", min=0.0),
+    ParamSpec("maml.task_reduce", str, "sum",
+              "Eq. 27 bracket over the 1 + M tasks: sum (paper) or mean", choices=("sum", "mean")),
+    ParamSpec("maml.eval_slices", int, 64,
+              "slices of tau_new for the before/after loss report", min=1),
+    ParamSpec("maml.seed", int, 0, "seed of the slice sampling", min=0),
+)
+
+
+#: Parameters of the ``baseline2:`` group of config/model_learner_node.yaml (section 4.4).
+BASELINE2_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("baseline2.steps", int, 20, "Adam steps per update", min=1),
+    ParamSpec("baseline2.lr", float, 1.0e-3, "Adam learning rate", min=0.0),
+    ParamSpec("baseline2.batch_slices", int, 64, "slices per mini-batch", min=1),
+    ParamSpec("baseline2.slice_len", int, 0, "samples per slice; 0 = model h + 1", min=0),
+    ParamSpec("baseline2.grad_clip", float, 1.0, "gradient-norm clip; 0 = off", min=0.0),
+    ParamSpec("baseline2.seed", int, 0, "seed of the slice sampling", min=0),
+)
+
+
 def _int_list(name: str, value: list, *, min_value: int) -> tuple[int, ...]:
     if not value or not all(isinstance(x, int) and not isinstance(x, bool) for x in value):
         raise ParameterError(f"parameter '{name}' must be a non-empty list of integers")

@@ -46,39 +46,16 @@ from torch import Tensor
 from torch.func import functional_call, grad
 
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.params import ParamSpec, load_node_params, validate_group
+from peel_msgs_py.params import load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
 
-from .config import TrainConfig, load_train_config
+from .config import MAML_SPECS, TrainConfig, load_train_config
 from .losses import mse_loss, pene_loss
 from .replay import ReplayPool
 from .windows import Windows
 
 #: Score handicap of a trajectory that did not complete the task (see module docstring).
 FAILED_PENALTY: float = 1.0e6
-
-#: Parameters of the ``maml:`` group of config/model_learner_node.yaml (Eq. 26-27).
-MAML_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("maml.alpha", float, 1.0e-3, "inner step size alpha (Eq. 26)", min=0.0),
-    ParamSpec("maml.beta", float, 1.0e-3, "meta step size beta (Eq. 27)", min=0.0),
-    ParamSpec("maml.m", int, 4, "M trajectories from the replay pool (Algorithm 1 step 4)", min=0),
-    ParamSpec("maml.support_slices", int, 32, "slices per support set D_new, D_i", min=1),
-    ParamSpec("maml.query_slices", int, 32, "slices per query set D'_new, D'_i", min=1),
-    ParamSpec("maml.slice_len", int, 0,
-              "samples per slice (Fig. 6); 0 = the model's history h + 1", min=0),
-    ParamSpec("maml.inner_steps", int, 1, "gradient steps of Eq. 26 per task", min=1),
-    ParamSpec("maml.meta_steps", int, 5, "meta steps (Eq. 27) per update", min=1),
-    ParamSpec("maml.first_order", bool, False, "drop second-order terms (FOMAML)"),
-    ParamSpec("maml.optimizer", str, "sgd", "meta step rule: sgd = Eq. 27, adam = Adam(beta)",
-              choices=("sgd", "adam")),
-    ParamSpec("maml.grad_clip", float, 0.0, "clip the meta-gradient norm; 0 = off", min=0.0),
-    ParamSpec("maml.task_reduce", str, "sum",
-              "Eq. 27 bracket over the 1 + M tasks: sum (paper) or mean", choices=("sum", "mean")),
-    ParamSpec("maml.eval_slices", int, 64,
-              "slices of tau_new for the before/after loss report", min=1),
-    ParamSpec("maml.seed", int, 0, "seed of the slice sampling", min=0),
-)
-
 
 @dataclass(frozen=True)
 class MamlConfig:

@@ -1,14 +1,15 @@
 """Every parameter ``model_learner_node`` declares, as plain data (no ROS): the model
 architecture (3.1), offline training (Eq. 23-25), MAML (Eq. 26-27, Algorithm 1), baseline 2 and
 the node's own ``node.*`` group. Registered under the ``peel.parameters`` entry point, so
-``peel train`` and the node refuse the same unknown names. All read-only at run time.
+``peel train`` and the node refuse the same unknown names. All read-only at run time. (No torch
+here: every command that reads a parameter file may load it.)
 """
 
 from __future__ import annotations
 
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 
-from .config import MODEL_SPECS, TRAIN_SPECS
+from .config import BASELINE2_SPECS, MAML_SPECS, MODEL_SPECS, TRAIN_SPECS
 
 NODE_NAME = "model_learner_node"
 
@@ -25,15 +26,6 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 )
 
 
-def _specs() -> tuple[ParamSpec, ...]:
-    from .baselines2 import BASELINE2_SPECS
-    from .maml import MAML_SPECS
-
-    return (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *BASELINE2_SPECS, *NODE_SPECS, USE_SIM_TIME)
-
-
-def __getattr__(name: str) -> tuple[ParamSpec, ...]:
-    """``SPECS`` on first use: the MAML and baseline-2 groups live beside torch code."""
-    if name == "SPECS":
-        return _specs()
-    raise AttributeError(name)
+#: Everything the node declares.
+SPECS: tuple[ParamSpec, ...] = (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *BASELINE2_SPECS,
+                                 *NODE_SPECS, USE_SIM_TIME)

@@ -13,10 +13,15 @@
   context down, ``spin`` returns (or raises ``KeyboardInterrupt`` /
   ``ExternalShutdownException``), and from then on further signals are ignored, so the teardown
   (``destroy_node``) is never interrupted and no traceback reaches the log.
+* Run as a program (``args`` None), the process then ends at once (:func:`exit_now`): the node
+  and the context are closed, files are written atomically, and the interpreter's own teardown
+  (torch's thread pools) took 1-4 s per node on a loaded 2-core machine.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -70,4 +75,14 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if args is None:
+        exit_now(status)
     return status
+
+
+def exit_now(status: int) -> None:
+    """Flush stdout and stderr, then end the process with ``status`` (no interpreter teardown)."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(status)
