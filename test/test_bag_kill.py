@@ -25,16 +25,17 @@ STORE = get_typestore(Stores.ROS2_JAZZY)
 WRITER = textwrap.dedent("""
     import sys, time
     from peel_msgs_py.bag import BagWriter
-    from peel_msgs_py.runtime import msg as M
+    from geometry_msgs.msg import Vector3, Wrench, WrenchStamped
+    from rclpy.serialization import serialize_message
     from peel_msgs_py.topics import STREAM_QOS
     path, mode = sys.argv[1], sys.argv[2]
     bag = BagWriter(path, chunk_size=1500 if mode == "size" else 10**9, flush_interval_s=3600)
     bag.open()
     bag.add_topic("/peel/wrench", "geometry_msgs/msg/WrenchStamped", [STREAM_QOS])
     def put(i):
-        m = M.WrenchStamped(wrench=M.Wrench(force=M.Vector3(x=float(i), z=-1.0)))
+        m = WrenchStamped(wrench=Wrench(force=Vector3(x=float(i), z=-1.0)))
         m.header.stamp.sec = i
-        bag.write("/peel/wrench", M.serialize(m), 1_000_000 + i)
+        bag.write("/peel/wrench", serialize_message(m), 1_000_000 + i)
     if mode == "explicit":
         for i in range(57):
             put(i)
@@ -116,10 +117,10 @@ def test_repair_refuses_a_bag_with_nothing_complete(tmp_path) -> None:
 
 def test_cut_at_any_byte_keeps_the_chunks_before_the_cut(tmp_path) -> None:
     """Truncating a bag anywhere (a write torn by the kill) keeps exactly the chunks before it."""
+    import ros_msgs as M
     from mcap.reader import make_reader
 
     from peel_msgs_py.bag import BagWriter
-    from peel_msgs_py.runtime import msg as M
 
     src = tmp_path / "full"
     with BagWriter(src, chunk_size=800) as bag:

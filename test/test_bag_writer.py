@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import ros_msgs as M
 import yaml
 from mcap.reader import make_reader
 from rosbags.interfaces import MessageDefinitionFormat
@@ -14,7 +15,6 @@ from peel_msgs_py import bagread, codec
 from peel_msgs_py import topics as T
 from peel_msgs_py.bag import BagWriter, prepare_bag_dir
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.runtime import msg as M
 from peel_msgs_py.trajectory import Trajectory
 
 STORE = get_typestore(Stores.ROS2_JAZZY)

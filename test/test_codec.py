@@ -6,11 +6,12 @@ import json
 
 import numpy as np
 import pytest
+from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.typesys import Stores, get_typestore
+from std_msgs.msg import Float64MultiArray
 
 from peel_msgs_py import codec
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.runtime.msg import deserialize, serialize
 from peel_msgs_py.trajectory import Trajectory
 
 
@@ -34,11 +35,12 @@ def _same(a: Trajectory, b: Trajectory) -> None:
     assert (a.outcome, a.params, a.meta) == (b.outcome, b.params, b.meta)
 
 
-def test_round_trip_through_runtime_message_and_cdr() -> None:
+def test_round_trip_through_rclpy_message_and_cdr() -> None:
     traj = _traj()
     msg = codec.trajectory_to_msg(traj)
+    assert isinstance(msg, Float64MultiArray)
     _same(codec.trajectory_from_msg(msg), traj)
-    back = deserialize(serialize(msg), "std_msgs/msg/Float64MultiArray")
+    back = deserialize_message(serialize_message(msg), Float64MultiArray)
     _same(codec.trajectory_from_msg(back), traj)
 
 
@@ -56,7 +58,7 @@ def test_si_on_the_wire() -> None:
 def test_jazzy_user_decoding_recipe_on_rosbags_message() -> None:
     """A rosbags-deserialised message decodes with the documented two-line recipe and ours."""
     traj = _traj(12)
-    raw = serialize(codec.trajectory_to_msg(traj))
+    raw = serialize_message(codec.trajectory_to_msg(traj))
     store = get_typestore(Stores.ROS2_JAZZY)
     msg = store.deserialize_cdr(raw, "std_msgs/msg/Float64MultiArray")
     header = json.loads(msg.layout.dim[0].label.split(" ", 1)[1])

@@ -1,4 +1,4 @@
-"""The topic table: names, types, QoS data, and the runtime QoS profiles built from it."""
+"""The topic table: names, types, QoS data, and the rclpy QoS profiles built from it."""
 
 from __future__ import annotations
 
@@ -51,13 +51,8 @@ def test_qos_spec_validation_and_bag_form() -> None:
     assert T.topic(T.WRENCH).sub_qos == T.STREAM_QOS
 
 
-def test_runtime_qos_profile() -> None:
-    from peel_msgs_py.runtime.qos import (
-        DurabilityPolicy,
-        HistoryPolicy,
-        QoSProfile,
-        ReliabilityPolicy,
-    )
+def test_rclpy_qos_profile() -> None:
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     prof = T.qos_profile(T.MODEL_VERSION)
     assert isinstance(prof, QoSProfile)

@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import ros_msgs as M
 import torch
 
 from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
@@ -13,7 +14,6 @@ from model_learner_node.synthetic import synthetic_split
 from peel_msgs_py import codec
 from peel_msgs_py import topics as T
 from peel_msgs_py.bag import BagWriter
-from peel_msgs_py.runtime import msg as M
 
 
 def write_bag(path, trajs):

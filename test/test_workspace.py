@@ -21,7 +21,7 @@ ALLOWED = {
     "peel_bringup": set(PACKAGES) - {"peel_bringup"},
 }
 ROS_MODULES = {"rclpy", "geometry_msgs", "std_msgs", "rosgraph_msgs", "rcl_interfaces",
-               "builtin_interfaces", "launch", "launch_ros"}
+               "builtin_interfaces", "std_srvs", "launch", "launch_ros", "ament_index_python"}
 
 
 @pytest.mark.parametrize("pkg", PACKAGES)
@@ -58,11 +58,11 @@ def test_dependencies_point_one_way(pkg: str) -> None:
 
 
 def test_libraries_import_no_ros() -> None:
-    """Only nodes, launch files and the runtime may touch ROS modules."""
+    """Only node modules (``*node.py``) and ``peel_msgs_py.ros`` may touch ROS modules."""
     for pkg in PACKAGES:
         for path in (ROOT / "src" / pkg / pkg).rglob("*.py"):
             rel = path.relative_to(ROOT / "src" / pkg / pkg)
-            if rel.parts[0] == "runtime" or path.name.endswith("node.py"):
+            if (pkg, rel.parts[0]) == ("peel_msgs_py", "ros") or path.name.endswith("node.py"):
                 continue
             bad = _imports(path) & ROS_MODULES
             assert not bad, f"library module {path.relative_to(ROOT)} imports ROS: {bad}"
@@ -92,3 +92,24 @@ def test_unknown_bench_target_is_one_line_error() -> None:
     assert out.returncode == 2
     assert "unknown benchmark 'warp-drive'" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_the_embedded_runtime_is_retired() -> None:
+    """rclpy is the one runtime: no module, test, requirement or setup step names the embedded
+    Cyclone DDS runtime any more."""
+    assert not (ROOT / "src" / "peel_msgs_py" / "peel_msgs_py" / "runtime").exists()
+    retired = ("peel_msgs_py.runtime", "PEEL_RUNTIME", "cyclonedds")
+    files = [*(ROOT / "src").rglob("*.py"), *(ROOT / "test").glob("*.py"),
+             *ROOT.glob("requirements*.txt"), ROOT / "scripts" / "setup.sh"]
+    for path in files:
+        if path.name == Path(__file__).name:
+            continue
+        text = path.read_text()
+        for word in retired:
+            assert word not in text, f"{path.relative_to(ROOT)} names {word}"
+    reqs = (ROOT / "requirements-ros.txt").read_text()
+    for pin in ("ros-rclpy==7.1.6", "ros-rcl-interfaces==2.0.3", "ros-geometry-msgs==5.3.6",
+                "ros-std-msgs==5.3.6", "ros-std-srvs==5.3.6", "ros-rosgraph-msgs==2.0.3",
+                "ros-rmw-fastrtps-cpp==8.4.3"):
+        assert pin in reqs.splitlines(), pin
+    assert all(line.startswith("#") or "==" in line for line in reqs.splitlines() if line)

@@ -26,14 +26,14 @@ from std_msgs.msg import Float64MultiArray
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.ros.main import run_node
-from peel_msgs_py.ros.parameters import declare
+from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
 
 from .online import OnlineLearner
 from .parameters import NODE_NAME, SPECS
 
 
-class LearnerNode(Node):
+class LearnerNode(NamedRefusals, Node):
     """The trajectory subscription, the swap client and the Algorithm 1 worker thread."""
 
     def __init__(self) -> None:

@@ -369,10 +369,10 @@ class Watch:
 
 def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
     """Spin the monitor until the tasks are done, a node dies or the user interrupts."""
-    import rclpy
+    from .monitor_node import spin_once
 
     while True:
-        rclpy.spin_once(mon, timeout_sec=0.1)
+        spin_once(mon, 0.1)
         w.report_tasks(mon)
         if stop.signum is not None:
             print("peel graph: interrupted; stopping the nodes", file=sys.stderr, flush=True)
@@ -408,14 +408,11 @@ def run_graph(args: argparse.Namespace) -> int:
     env = child_env()
     discovery.confine()  # the launcher's own node too
 
-    import rclpy
+    from .monitor_node import close_monitor, open_monitor
 
-    from .monitor_node import GraphMonitor
-
-    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    mon = open_monitor()
     stop = _Interrupt()
     stop.install()
-    mon = GraphMonitor()
     w = Watch(run, children)
     try:
         for child in children:
@@ -427,8 +424,7 @@ def run_graph(args: argparse.Namespace) -> int:
     finally:
         stop.restore()
         tear_down(children, run.gp["graph.stop_timeout_s"])
-        mon.destroy_node()
-        rclpy.try_shutdown()
+        close_monitor(mon)
     return write_summary(w, mon)
 
 

@@ -8,7 +8,9 @@ import dataclasses
 import sys
 from typing import Any
 
+import rclpy
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Float64MultiArray, Int64
 
 from peel_msgs_py import codec, topics
@@ -40,3 +42,18 @@ class GraphMonitor(Node):
     def on_version(self, msg: Int64) -> None:
         self.version = int(msg.data)
         self.versions.append(int(msg.data))
+
+
+def open_monitor() -> GraphMonitor:
+    """rclpy up (the launcher keeps its own SIGINT handling) and the monitor node created."""
+    rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
+    return GraphMonitor()
+
+
+def spin_once(mon: GraphMonitor, timeout_s: float) -> None:
+    rclpy.spin_once(mon, timeout_sec=timeout_s)
+
+
+def close_monitor(mon: GraphMonitor) -> None:
+    mon.destroy_node()
+    rclpy.try_shutdown()

@@ -27,7 +27,7 @@ from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns
-from peel_msgs_py.ros.parameters import declare
+from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
 
 from .config import PlannerConfig
@@ -37,7 +37,7 @@ from .model_check import resolve_model_path, validate_model, version_of
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
 
 
-class PlannerNode(Node):
+class PlannerNode(NamedRefusals, Node):
     """Subscriptions, the command publisher and the model swap around a :class:`ControlLoop`."""
 
     def __init__(self) -> None:

@@ -26,7 +26,7 @@ from std_msgs.msg import Float64MultiArray, Int64
 from peel_msgs_py import codec, topics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns, trajectory_msg
-from peel_msgs_py.ros.parameters import declare
+from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 
@@ -44,7 +44,7 @@ def library_params(values: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in values.items() if k in names}
 
 
-class SimNode(Node):
+class SimNode(NamedRefusals, Node):
     """Publishers, subscriptions and a wall-clock timer around a :class:`TaskSequence`."""
 
     def __init__(self) -> None:

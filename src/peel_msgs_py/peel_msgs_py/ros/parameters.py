@@ -128,3 +128,26 @@ def _value_message(name: str, text: str) -> str:
     the parameter (a descriptor's range, or :class:`SpecCheck`'s message)."""
     reason = text.split("Reason: ", 1)[-1]
     return reason if reason.startswith(f"parameter '{name}'") else f"parameter '{name}': {reason}"
+
+
+def _named(result: SetParametersResult, name: str) -> SetParametersResult:
+    if not result.successful and name not in result.reason:
+        result.reason = f"parameter '{name}': {result.reason}"
+    return result
+
+
+class NamedRefusals:
+    """Node mixin: a refused ``set_parameters`` names the parameter in its reason.
+
+    rclpy's own reasons name it for a range or read-only refusal but not for a wrong type
+    ("Wrong parameter type, expected 'Type.DOUBLE' got 'Type.INTEGER'"); the parameter services
+    call :meth:`set_parameters_atomically` once per parameter, so the name is added there.
+    """
+
+    def set_parameters_atomically(self, parameter_list: list[Parameter]) -> SetParametersResult:
+        result = super().set_parameters_atomically(parameter_list)  # type: ignore[misc]
+        return _named(result, parameter_list[0].name) if len(parameter_list) == 1 else result
+
+    def set_parameters(self, parameter_list: list[Parameter]) -> list[SetParametersResult]:
+        results = super().set_parameters(parameter_list)  # type: ignore[misc]
+        return [_named(r, p.name) for p, r in zip(parameter_list, results, strict=True)]
