@@ -1,8 +1,10 @@
-"""The node graph as separate processes on the embedded runtime (issue 7).
+"""The node graph as separate processes on rclpy (docs/graph.md).
 
-Each test starts ``peel graph`` (three node processes + recorder) on its own ROS_DOMAIN_ID with a
-small parameter override (short tasks, small N/H, one meta step) and reads the bag back with
-``rosbags`` (its own rosbag2 reader and Jazzy typestore, not our bag code).
+Each test starts ``peel graph`` (three node processes + recorder) on a ROS domain of its own
+(the ``ros_domain`` fixture of conftest.py; LOCALHOST discovery) with a small parameter override
+(short tasks, small N/H, one meta step) and reads the bag back with two independent readers:
+``rosbags`` (its rosbag2 reader and Jazzy typestore) and mcap's own ROS 2 decoder
+(``mcap-ros2-support``). No node log may hold a traceback (one SIGINT per node at shutdown).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
@@ -60,11 +63,6 @@ peel_bringup:
 """
 
 
-def domain_id(offset: int) -> str:
-    """A ROS_DOMAIN_ID unique to this test (and to this pytest process)."""
-    return str(120 + (os.getpid() % 20) * 5 + offset)
-
-
 def initial_model(tmp: Path) -> Path:
     """A freshly initialised forward model (seeded): the tests do not depend on training."""
     import torch
@@ -92,10 +90,32 @@ def graph_cmd(tmp: Path, *extra: str, tasks: int = 3, wait_model_s: float = 120.
             "--out", str(tmp / "run"), "--seed", "3", *extra]
 
 
-def graph_env(offset: int) -> dict[str, str]:
-    env = dict(os.environ)
-    env.update(PEEL_RUNTIME="dds", ROS_DOMAIN_ID=domain_id(offset), PYTHONUNBUFFERED="1")
-    return env
+def graph_env() -> dict[str, str]:
+    """This test's environment (its ROS domain from the ``ros_domain`` fixture)."""
+    return dict(os.environ, PYTHONUNBUFFERED="1")
+
+
+def assert_clean_logs(run_dir: Path) -> None:
+    """Every node stopped on one signal, cleanly: no traceback in any log of the run."""
+    logs = sorted((run_dir / "logs").glob("*.log"))
+    assert len(logs) >= 3
+    for log in logs:
+        text = log.read_text(errors="replace")
+        assert "Traceback" not in text and "KeyboardInterrupt" not in text, (log.name, text[-2000:])
+
+
+def read_bag_mcap_ros2(bag: Path) -> dict[str, list[object]]:
+    """topic -> decoded messages, read with mcap's own ROS 2 decoder (mcap-ros2-support)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out: dict[str, list[object]] = {}
+    (path,) = sorted(bag.glob("*.mcap"))
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for _, channel, _, msg in reader.iter_decoded_messages():
+            out.setdefault(channel.topic, []).append(msg)
+    return out
 
 
 class Lines:
@@ -154,12 +174,13 @@ def frame_tasks(msgs: list[tuple[float, object]]) -> set[int]:
     return {int(m.header.frame_id.rsplit("_", 1)[1]) for _, m in msgs}
 
 
-def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path) -> None:
+def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path, ros_domain: str
+                                                           ) -> None:
     """On the plant, seed 3; also the same results as ``peel experiment`` (run_job) with the
-    same seed, model and parameters (issue 7 section 4)."""
+    same seed, model and parameters."""
     bag = tmp_path / "bag"
     res = subprocess.run(graph_cmd(tmp_path, "--record", str(bag), plant="plant"),
-                         env=graph_env(0), capture_output=True, text=True, timeout=400)
+                         env=graph_env(), capture_output=True, text=True, timeout=400)
     assert res.returncode == 0, res.stdout + res.stderr
     task_lines = [ln for ln in res.stdout.splitlines() if re.match(r"task \d/3: ", ln)]
     assert len(task_lines) == 3, res.stdout
@@ -210,6 +231,28 @@ def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path) -> N
     assert models[:2] == ["model_v0001.safetensors", "model_v0002.safetensors"]
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert [r["model_version"] for r in summary["results"]] == [0, 1, 2]
+    assert_clean_logs(tmp_path / "run")
+
+    # mcap's own ROS 2 decoder reads the same bag: same messages per topic, same values
+    other = read_bag_mcap_ros2(bag)
+    assert {k: len(v) for k, v in other.items()} == {k: len(v) for k, v in msgs.items()}
+    assert [m.wrench.force.x for m in other["/peel/wrench"]] == \
+        [m.wrench.force.x for _, m in msgs["/peel/wrench"]]
+    assert [m.data for m in other["/peel/model_version"]] == versions
+    assert [len(m.data) for m in other["/peel/trajectory"]] == [len(m.data) for _, m in trajs]
+    # channel metadata: the QoS the publishers offered and the type hash they announced
+    from mcap.reader import make_reader
+
+    with open(next(bag.glob("*.mcap")), "rb") as fh:
+        channels = {c.topic: c for c in make_reader(fh).get_summary().channels.values()}
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name, ch in channels.items():
+        assert ch.message_encoding == "cdr"
+        assert ch.metadata["topic_type_hash"] == store.hash_rihs01(_type_of(name))
+        offered = yaml.safe_load(ch.metadata["offered_qos_profiles"])
+        assert offered and offered[0]["reliability"] == "reliable", (name, offered)
+    latched = yaml.safe_load(channels["/peel/model_version"].metadata["offered_qos_profiles"])
+    assert latched[0]["durability"] == "transient_local"
 
     # the same three peels in one process, as `peel experiment` runs them
     from peel_bringup.experiment import Setup, planner_params, run_job
@@ -226,13 +269,19 @@ def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path) -> N
         assert abs(g["J"] - e["cost"]) <= 0.02 * max(1.0, abs(e["cost"])), (g, e)
 
 
-def test_learner_killed_planner_keeps_last_good_model(tmp_path: Path) -> None:
+def _type_of(topic: str) -> str:
+    from peel_msgs_py.topics import topic as spec
+
+    return spec(topic).type
+
+
+def test_learner_killed_planner_keeps_last_good_model(tmp_path: Path, ros_domain: str) -> None:
     bag = tmp_path / "bag"
     # a slow learner (many meta steps per update) leaves seconds between its first swap and
     # its second, so the kill below lands mid-run whatever the machine's load
     proc = subprocess.Popen(graph_cmd(tmp_path, "--record", str(bag), "--keep-going",
                                       wait_model_s=8.0, meta_steps=150),
-                            env=graph_env(1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=graph_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
         out = Lines(proc)
@@ -259,25 +308,141 @@ def test_learner_killed_planner_keeps_last_good_model(tmp_path: Path) -> None:
     assert len(msgs["/peel/trajectory"]) == 3
 
 
-def test_ctrl_c_leaves_a_readable_bag(tmp_path: Path) -> None:
+# An independent rclpy node, written here with rclpy and the generated classes only (none of
+# our helpers): it hears /peel/wrench, then reads and sets planner parameters through the
+# standard parameter services of the running graph; prints one JSON line.
+INDEPENDENT = """
+import json, sys, time
+import rclpy
+from rclpy.node import Node
+from geometry_msgs.msg import WrenchStamped
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import DescribeParameters, GetParameters, SetParameters
+
+rclpy.init()
+node = Node("independent_client")
+heard = []
+node.create_subscription(WrenchStamped, "/peel/wrench", lambda m: heard.append(m), 10)
+srv = {name: node.create_client(kind, "/peel_planner_node/" + name) for name, kind in
+       (("get_parameters", GetParameters), ("set_parameters", SetParameters),
+        ("describe_parameters", DescribeParameters))}
+assert all(c.wait_for_service(timeout_sec=120) for c in srv.values())
+end = time.monotonic() + 120
+while len(heard) < 5 and time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.1)
+
+def call(name, req):
+    fut = srv[name].call_async(req)
+    rclpy.spin_until_future_complete(node, fut, timeout_sec=60)
+    return fut.result()
+
+def get(name):
+    return call("get_parameters", GetParameters.Request(names=[name])).values[0].double_value
+
+def put(name, value):
+    pv = (ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+          if isinstance(value, float) else
+          ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value))
+    res = call("set_parameters", SetParameters.Request(
+        parameters=[Parameter(name=name, value=pv)])).results[0]
+    return [res.successful, res.reason]
+
+desc = call("describe_parameters", DescribeParameters.Request(names=["mppi.lambda"])).descriptors[0]
+out = {"heard": len(heard), "frame": heard[0].header.frame_id if heard else None,
+       "lambda_before": get("mppi.lambda"),
+       "describe": [desc.description, desc.read_only,
+                    [r.from_value for r in desc.floating_point_range]],
+       "set_ok": put("mppi.lambda", 0.2), "set_range": put("mppi.lambda", -1.0),
+       "set_int": put("mppi.lambda", 1), "set_read_only": put("safety.f_prewarn_n", 30.0),
+       "lambda_after": get("mppi.lambda"), "prewarn_after": get("safety.f_prewarn_n")}
+print(json.dumps(out), flush=True)
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+def test_ctrl_c_independent_client_and_clean_stop(tmp_path: Path, ros_domain: str) -> None:
+    """While the graph runs, an independent rclpy process hears /peel/wrench and reads and sets
+    planner parameters over the standard services (refusals name the parameter, the old value
+    stays); Ctrl-C then stops every node on one signal, with no traceback, and a readable bag."""
     bag = tmp_path / "bag"
     proc = subprocess.Popen(graph_cmd(tmp_path, "--record", str(bag), tasks=20),
-                            env=graph_env(2), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=graph_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
         out = Lines(proc)
         pids = [int(m) for m in re.findall(r"\(pid (\d+)\)", "\n".join(
             [out.wait_for(r"started peel_sim_node \(pid \d+\)", 60).string, *out.lines]))]
+        client = subprocess.run([sys.executable, "-c", INDEPENDENT], env=graph_env(),
+                                capture_output=True, text=True, timeout=300)
         out.wait_for(r"task 1/20: ", 300)
         proc.send_signal(signal.SIGINT)
         rc = proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
+    assert client.returncode == 0, client.stderr
+    got = json.loads(client.stdout.strip().splitlines()[-1])
+    assert got["heard"] >= 5 and got["frame"].startswith("peel_task_")
+    assert got["lambda_before"] == 0.1
+    assert "Eq. 38" in got["describe"][0] and got["describe"][1] is False
+    assert got["set_ok"] == [True, ""]
+    assert not got["set_range"][0] and "mppi.lambda" in got["set_range"][1]
+    assert not got["set_int"][0] and "mppi.lambda" in got["set_int"][1]
+    assert "type" in got["set_int"][1].lower()
+    assert not got["set_read_only"][0] and "safety.f_prewarn_n" in got["set_read_only"][1]
+    assert got["lambda_after"] == 0.2 and got["prewarn_after"] == 20.0  # last good values
+
     assert rc == 130, out.join()
     for pid in set(pids):  # every node stopped
         assert not Path(f"/proc/{pid}").exists() or \
             Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+    assert_clean_logs(tmp_path / "run")
     msgs = read_bag(bag)  # a complete bag: rosbags opens it without repair
     assert len(msgs["/peel/wrench"]) >= 10
     assert len(msgs["/peel/trajectory"]) >= 1
+
+
+def test_bad_parameter_is_refused_before_anything_starts(tmp_path: Path, ros_domain: str) -> None:
+    """Each bad override (a wrong type, out of range, an unknown name, a misspelled node
+    section) is one line naming it, exit 2, and no node was started."""
+    cases = {
+        "peel_planner_node:\n  ros__parameters:\n    mppi:\n      lambda: 1\n":
+            "parameter 'mppi.lambda': wrong type, expected DOUBLE got INTEGER",
+        "peel_planner_node:\n  ros__parameters:\n    mppi:\n      n_samples: 0\n":
+            "parameter 'mppi.n_samples'",
+        "peel_planner_node:\n  ros__parameters:\n    mppi:\n      n_sampels: 50\n":
+            "unknown parameter 'mppi.n_sampels'",
+        "model_learner_node:\n  ros__parameters:\n    train:\n      epocs: 5\n":
+            "unknown parameter 'train.epocs'",
+        "peel_planer_node:\n  ros__parameters:\n    mppi:\n      lambda: 0.2\n":
+            "unknown node section 'peel_planer_node'",
+    }
+    for i, (text, expected) in enumerate(cases.items()):
+        override = tmp_path / f"bad{i}.yaml"
+        override.write_text(text)
+        res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "graph", "--params",
+                              str(override), "--out", str(tmp_path / f"run{i}")],
+                             env=graph_env(), capture_output=True, text=True, timeout=120)
+        assert res.returncode == 2, (text, res.stdout, res.stderr)
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and expected in lines[0], (text, res.stderr)
+        assert "started" not in res.stdout
+
+
+def test_node_refusing_its_parameters_exits_2_and_so_does_the_graph(tmp_path: Path,
+                                                                   ros_domain: str) -> None:
+    """A node that refuses its start (here the planner: a model.path that is no checkpoint)
+    exits 2 with one line; the graph stops the others and exits 2 too."""
+    override = tmp_path / "override.yaml"
+    override.write_text(f"peel_planner_node:\n  ros__parameters:\n    model:\n"
+                        f"      path: {tmp_path / 'missing.safetensors'}\n")
+    res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "graph", "--params",
+                          str(override), "--out", str(tmp_path / "run"), "--tasks", "1"],
+                         env=graph_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert "peel_planner_node" in res.stderr and "exit status 2" in res.stderr
+    log = (tmp_path / "run" / "logs" / "peel_planner_node.log").read_text()
+    assert log.strip().splitlines()[-1].startswith("peel_planner_node: error: ")
+    assert "parameter 'model.path'" in log and "missing" in log
+    assert_clean_logs(tmp_path / "run")

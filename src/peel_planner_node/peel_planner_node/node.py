@@ -47,7 +47,10 @@ class PlannerNode(NamedRefusals, Node):
         self.cfg = PlannerConfig.from_params(self.values)
         self.dt_s = float(self.cfg.cost.dt_s)
         path = resolve_model_path(self.values[MODEL_PATH])
-        pred = validate_model(path, None, self.values["node.probe_batch"], None)
+        try:
+            pred = validate_model(path, None, self.values["node.probe_batch"], None)
+        except PeelError as exc:
+            raise PeelError(f"parameter '{MODEL_PATH}': {exc}") from None
         self.h, self.version = int(pred.h), version_of(path, 0)
         self.loop = ControlLoop(self.cfg, LearnedDynamics(pred, dt_s=self.dt_s),
                                 self.values["node.seed"])
