@@ -1,4 +1,5 @@
-"""``peel record`` end to end: real publisher and recorder processes over the embedded runtime."""
+"""``peel record`` end to end: real rclpy publisher and recorder processes (raw subscriptions:
+the CDR bytes as received, the offered QoS and type hash from the publishers' endpoint info)."""
 
 from __future__ import annotations
 
@@ -23,18 +24,22 @@ N = 50  # wrench messages published, force.x = index
 PUBLISHER = textwrap.dedent(f"""
     import time
     import numpy as np
+    import rclpy
+    from geometry_msgs.msg import Vector3, Wrench, WrenchStamped
+    from rclpy.node import Node
+    from std_msgs.msg import Float64MultiArray, Int64
     from peel_msgs_py import codec, topics as T
-    from peel_msgs_py.runtime import Node, rclpy
-    from peel_msgs_py.runtime import msg as M
     from peel_msgs_py.trajectory import Trajectory
     rclpy.init()
     node = Node("fake_sim")
-    pubs = {{n: node.create_publisher(M.get_message_class(T.topic(n).type), n, T.qos_profile(n))
-            for n in (T.WRENCH, T.MODEL_VERSION, T.TRAJECTORY)}}
-    pubs[T.MODEL_VERSION].publish(M.Int64(data=5))
-    time.sleep(1.0)  # discovery
+    kinds = {{T.WRENCH: WrenchStamped, T.MODEL_VERSION: Int64, T.TRAJECTORY: Float64MultiArray}}
+    pubs = {{n: node.create_publisher(kinds[n], n, T.qos_profile(n)) for n in kinds}}
+    pubs[T.MODEL_VERSION].publish(Int64(data=5))
+    end = time.monotonic() + 60  # discovery: until the recorder's subscriptions matched
+    while min(p.get_subscription_count() for p in pubs.values()) < 1 and time.monotonic() < end:
+        time.sleep(0.05)
     for k in range({N}):
-        m = M.WrenchStamped(wrench=M.Wrench(force=M.Vector3(x=float(k), z=-1.0)))
+        m = WrenchStamped(wrench=Wrench(force=Vector3(x=float(k), z=-1.0)))
         m.header.frame_id = codec.task_frame_id(1)
         m.header.stamp.sec = k
         pubs[T.WRENCH].publish(m)
@@ -55,7 +60,6 @@ def _start_recorder(bag, *extra: str) -> subprocess.Popen[str]:
         [sys.executable, "-m", "peel_bringup.cli", "record", "--out", str(bag),
          "--flush-interval", "0.2", *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "PEEL_RUNTIME": "dds"},
     )
     line = proc.stderr.readline()
     assert "recording" in line, line + proc.stderr.read()
@@ -64,7 +68,7 @@ def _start_recorder(bag, *extra: str) -> subprocess.Popen[str]:
 
 def _publish() -> None:
     out = subprocess.run([sys.executable, "-c", PUBLISHER], capture_output=True, text=True,
-                         timeout=120, env={**os.environ, "PEEL_RUNTIME": "dds"})
+                         timeout=120)
     assert out.returncode == 0 and "published" in out.stdout, out.stderr
 
 
@@ -74,7 +78,7 @@ def _wrench_x(bag) -> list[float]:
                 for c, _, raw in reader.messages() if c.topic == "/peel/wrench"]
 
 
-def test_record_until_sigint(tmp_path) -> None:
+def test_record_until_sigint(tmp_path, ros_domain) -> None:
     bag = tmp_path / "rec"
     rec = _start_recorder(bag)
     try:
@@ -94,12 +98,25 @@ def test_record_until_sigint(tmp_path) -> None:
     (traj,) = bagread.read_trajectories(bag)
     assert traj.outcome == "timeout" and traj.q[-1] == 25.0 and np.isnan(traj.psi[0])
     with Reader(bag) as reader:
-        types = {c.topic: c.msgtype for c in reader.connections}
-    assert types["/peel/wrench"] == "geometry_msgs/msg/WrenchStamped"
-    assert types["/clock"] == "rosgraph_msgs/msg/Clock"
+        conns = {c.topic: c for c in reader.connections}
+    # only topics that had publishers: as ros2 bag record, a channel per discovered topic
+    assert set(conns) == {"/peel/wrench", "/peel/model_version", "/peel/trajectory"}
+    assert conns["/peel/wrench"].msgtype == "geometry_msgs/msg/WrenchStamped"
+    assert conns["/peel/wrench"].digest == STORE.hash_rihs01("geometry_msgs/msg/WrenchStamped")
+    latched = conns["/peel/model_version"].ext.offered_qos_profiles[0]
+    assert latched.durability.name.lower() == "transient_local"
+    # mcap's own ROS 2 decoder reads the same messages
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(bag / "rec_0.mcap", "rb") as fh:
+        decoded = [(c.topic, m) for _, c, _, m in make_reader(
+            fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages()]
+    assert [m.wrench.force.x for t, m in decoded if t == "/peel/wrench"] == xs
+    assert [m.data for t, m in decoded if t == "/peel/model_version"] == [5]
 
 
-def test_sigkilled_recorder_keeps_flushed_chunks(tmp_path) -> None:
+def test_sigkilled_recorder_keeps_flushed_chunks(tmp_path, ros_domain) -> None:
     bag = tmp_path / "rec"
     rec = _start_recorder(bag, "--topics", "/peel/wrench", "/peel/model_version",
                           "/peel/trajectory")

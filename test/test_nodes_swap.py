@@ -1,6 +1,7 @@
-"""The model swap of ``peel_planner_node`` over its SetParameters service (issue 7, section 2).
+"""The model swap of ``peel_planner_node`` over its SetParameters service (docs/graph.md).
 
-A real planner process on the embedded runtime; this test process is the client. Corrupted,
+A real planner process on rclpy; this test process is the client (rclpy, the standard
+``rcl_interfaces/srv/SetParameters``). Corrupted,
 truncated, mismatched, non-finite and pickled weights are refused with a reason and the running
 model (``/peel/model_version``) stays; a good checkpoint is accepted and its version published.
 """
@@ -24,9 +25,7 @@ from safetensors.torch import load_file, save_file
 from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
 from model_learner_node.config import ModelConfig
 from model_learner_node.predictor import ForcePredictor
-from peel_planner_node.node import validate_model, version_of
-
-DOMAIN = str(110 + os.getpid() % 10)
+from peel_planner_node.model_check import validate_model, version_of
 
 
 def test_version_of_names() -> None:
@@ -101,9 +100,7 @@ def test_validate_model_refuses_bad_files(tmp_path: Path) -> None:
 
 
 def test_swap_service_refuses_with_reason_and_keeps_model(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("ROS_DOMAIN_ID", DOMAIN)
-    monkeypatch.setenv("PEEL_RUNTIME", "dds")
+        tmp_path: Path, ros_domain: str) -> None:
     bad = _bad_files(tmp_path)
     good = _good(tmp_path, "model_v0007")
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -112,10 +109,13 @@ def test_swap_service_refuses_with_reason_and_keeps_model(
                              "-p", "mppi.n_samples:=8", "-p", "mppi.horizon:=2",
                              "-p", f"model.path:={_model(tmp_path)}"],
                             env=env, stdout=log, stderr=subprocess.STDOUT)
+    import rclpy
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.node import Node
+    from std_msgs.msg import Int64
+
     from peel_msgs_py import topics
-    from peel_msgs_py.runtime import Node, rclpy
-    from peel_msgs_py.runtime.msg import Int64, Parameter, ParameterType, ParameterValue
-    from peel_msgs_py.runtime.srv import SetParameters
 
     rclpy.init(args=None)
     node = Node("swap_test")
