@@ -7,8 +7,8 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
 
 * every node gets ``share/peel_bringup/config/<node>.yaml``, then the override file (if any),
   then ``use_sim_time: true`` and the settings below;
-* ``record:=BAG`` adds the recorder (``peel record --out BAG``; ``ros2 bag record -s mcap``
-  works too, the bag layout is the same);
+* ``record:=BAG`` adds the recorder (``ros2 run peel_msgs_py peel_recorder --out BAG``, the
+  same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
 * the simulator exits after the K tasks and the learner's last swap (``node.exit_when_done``);
   its exit, or any node's death, shuts the whole launch down (the recorder closes its bag on
   the SIGINT that launch sends).
@@ -20,13 +20,7 @@ import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import (
-    DeclareLaunchArgument,
-    EmitEvent,
-    ExecuteProcess,
-    OpaqueFunction,
-    RegisterEventHandler,
-)
+from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch_ros.actions import Node
@@ -58,8 +52,9 @@ def _setup(context, *args, **kwargs):
         )
         actions.append(nodes[name])
     if arg["record"]:
-        actions.insert(0, ExecuteProcess(cmd=["peel", "record", "--out", arg["record"]],
-                                         output="screen", sigterm_timeout="20"))
+        actions.insert(0, Node(package="peel_msgs_py", executable="peel_recorder",
+                               name="peel_recorder", output="screen", sigterm_timeout="20",
+                               arguments=["--out", arg["record"]]))
     # the simulator finishing (or any node dying) ends the launch
     for name in NODES:
         actions.append(RegisterEventHandler(OnProcessExit(

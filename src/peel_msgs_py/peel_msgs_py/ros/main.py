@@ -9,10 +9,12 @@
   raises :class:`~peel_msgs_py.errors.ParameterError`) and spun until it says it is done
   (``node.done``) or a signal arrives.
 * Bad input of any kind prints ``<node>: error: <message>`` (one line) and exits 2.
-* SIGINT or SIGTERM stop the node cleanly with status 0: rclpy's signal handler shuts the
-  context down, ``spin`` returns (or raises ``KeyboardInterrupt`` /
-  ``ExternalShutdownException``), and from then on further signals are ignored, so the teardown
-  (``destroy_node``) is never interrupted and no traceback reaches the log.
+* SIGINT or SIGTERM stop the node cleanly with status 0 and no traceback, whenever they come
+  (while the node is built, spinning or torn down): rclpy's signal handler shuts the context
+  down and wakes the executor, and the Python-level handler it chains to only notes the signal
+  (no ``KeyboardInterrupt`` raised at some arbitrary line); an error that follows from the
+  shutdown (an entity created on a closed context) ends the node quietly too; a second signal
+  changes nothing.
 * Run as a program (``args`` None), the process then ends at once (:func:`exit_now`): the node
   and the context are closed, files are written atomically, and the interpreter's own teardown
   (torch's thread pools) took 1-4 s per node on a loaded 2-core machine.
@@ -39,6 +41,8 @@ POLL_S = 0.2
 
 def spin_until_done(node: Node) -> int:
     """Spin ``node`` until ``node.done`` (if it has one) or shutdown; its ``exit_status``."""
+    if not rclpy.ok():  # a signal during the node's construction: nothing to spin
+        return 0
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
@@ -50,9 +54,24 @@ def spin_until_done(node: Node) -> int:
     return int(getattr(node, "exit_status", 0) or 0)
 
 
-def _ignore_signals() -> None:
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
+class _Signals:
+    """Python-level SIGINT/SIGTERM handler under rclpy's: notes the signal, raises nothing."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self.note)
+        self._unraisable = sys.unraisablehook
+        sys.unraisablehook = self.unraisable
+
+    def note(self, signum: int, frame: object) -> None:
+        self.received = signum
+
+    def unraisable(self, info: object) -> None:
+        """After a signal, rclpy objects half-built on the closed context complain from their
+        ``__del__``; that is the shutdown we asked for, not an error worth a traceback."""
+        if self.received is None:
+            self._unraisable(info)  # type: ignore[arg-type]
 
 
 def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = None) -> int:
@@ -60,6 +79,7 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
     argv = list(sys.argv if args is None else args)
     node: Node | None = None
     status = 0
+    signals = _Signals()  # before rclpy.init: rclpy's handler chains to this one
     try:
         ros_args_overrides(argv, name)
         rclpy.init(args=argv)
@@ -70,8 +90,11 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
         status = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         status = 0
+    except Exception:
+        if signals.received is None:
+            raise
+        status = 0  # a consequence of the shutdown the signal asked for
     finally:
-        _ignore_signals()  # one signal stops the node; the teardown runs to its end
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
