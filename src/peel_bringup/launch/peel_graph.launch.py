@@ -39,7 +39,8 @@ def _setup(context, *args, **kwargs):
                           "node.seed": int(arg["seed"]), "node.exit_when_done": True,
                           "node.min_subscribers": 2 if arg["record"] else 1,
                           "node.min_traj_subscribers": 2 if arg["record"] else 1},
-        "peel_planner_node": {"node.seed": int(arg["seed"])},
+        "peel_planner_node": {"node.seed": int(arg["seed"]),
+                              "node.min_cmd_subscribers": 2 if arg["record"] else 1},
         "model_learner_node": {"node.out_dir": models},
     }
     actions = []

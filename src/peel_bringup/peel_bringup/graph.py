@@ -110,7 +110,8 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
             "node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
             "node.min_traj_subscribers": 3 if recording else 2,  # learner, launcher (+ rec.)
         },
-        "peel_planner_node": {"use_sim_time": True, "node.seed": seed},
+        "peel_planner_node": {"use_sim_time": True, "node.seed": seed,
+                              "node.min_cmd_subscribers": 2 if recording else 1},  # sim (+ rec.)
         "model_learner_node": {
             "use_sim_time": True, "node.out_dir": str((run_dir / "models").resolve()),
         },

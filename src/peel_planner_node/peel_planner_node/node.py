@@ -13,12 +13,14 @@ refuses with the reason, keeping the old model. The active version goes out on
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import torch
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Int64
@@ -66,9 +68,25 @@ class PlannerNode(NamedRefusals, Node):
         self.create_subscription(PoseStamped, topics.POSE, self.on_pose,
                                  qos(topics.POSE, subscriber=True))
         self.add_on_set_parameters_callback(self.on_set_parameters)
-        self.pub_version.publish(Int64(data=self.version))
+        self.waiting_since = time.monotonic()
+        self.announcer = self.create_timer(0.05, self.announce,
+                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"planner ready: model v{self.version} ({path.name}), "
                                f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}")
+
+    def announce(self) -> None:
+        """Publish the model version once the command's readers are matched: the simulator
+        starts on it, so no command is published before its readers (the recorder) are there."""
+        want = self.values["node.min_cmd_subscribers"]
+        waited = time.monotonic() - self.waiting_since
+        if self.pub_cmd.get_subscription_count() < want and \
+                waited < self.values["node.wait_subscribers_s"]:
+            return
+        if self.pub_cmd.get_subscription_count() < want:
+            self.get_logger().warn(f"fewer than {want} readers of {topics.CMD_VEL}; going on")
+        self.announcer.cancel()
+        self.destroy_timer(self.announcer)
+        self.pub_version.publish(Int64(data=self.version))
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, **parts: float) -> None:

@@ -32,6 +32,11 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.threads", int, 1, "torch CPU threads of the planner process", min=1),
     ParamSpec("node.seed", int, 0, "seed of the task sequence; task k plans with mppi.seed = "
               "task_seed(seed, k) as peel experiment does", min=0),
+    ParamSpec("node.min_cmd_subscribers", int, 1,
+              "readers of /peel/cmd_vel (simulator, recorder) to wait for before announcing the "
+              "model version (the simulator starts on it)", min=0),
+    ParamSpec("node.wait_subscribers_s", float, 60.0,
+              "wall s to wait for them; then the version is announced anyway", min=0.0),
 )
 
 #: Everything the node declares.

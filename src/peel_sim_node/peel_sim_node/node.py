@@ -110,7 +110,10 @@ class SimNode(NamedRefusals, Node):
         missing = []
         if self.model_version is None:
             missing.append(f"{topics.MODEL_VERSION} from the planner")
-        for pub, want, name in ((self.pub_wrench, self.p["node.min_subscribers"], topics.WRENCH),
+        state = self.p["node.min_subscribers"]
+        for pub, want, name in ((self.pub_wrench, state, topics.WRENCH),
+                                (self.pub_twist, state, topics.TWIST),
+                                (self.pub_pose, state, topics.POSE),
                                 (self.pub_traj, self.p["node.min_traj_subscribers"],
                                  topics.TRAJECTORY)):
             if pub.get_subscription_count() < want:

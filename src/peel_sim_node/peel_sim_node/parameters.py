@@ -28,7 +28,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.wait_planner_s", float, 120.0,
               "wall s to wait for the planner's /peel/model_version before task 1", min=0.0),
     ParamSpec("node.min_subscribers", int, 1,
-              "wait for this many subscribers of /peel/wrench before task 1", min=0),
+              "wait for this many subscribers of each state topic before task 1", min=0),
     ParamSpec("node.min_traj_subscribers", int, 1,
               "wait for this many subscribers of /peel/trajectory before task 1 (learner, "
               "launcher, recorder)", min=0),
