@@ -107,6 +107,7 @@ def test_swap_service_refuses_with_reason_and_keeps_model(
     log = (tmp_path / "planner.log").open("wb")
     proc = subprocess.Popen([sys.executable, "-m", "peel_planner_node.node", "--ros-args",
                              "-p", "mppi.n_samples:=8", "-p", "mppi.horizon:=2",
+                             "-p", "node.min_cmd_subscribers:=0",
                              "-p", f"model.path:={_model(tmp_path)}"],
                             env=env, stdout=log, stderr=subprocess.STDOUT)
     import rclpy

@@ -35,20 +35,20 @@ def test_quick_benchmark_prints_both_implementations_with_paired_costs() -> None
 
 def test_cost_study_takes_base_settings_and_ad_hoc_variants() -> None:
     out = _bench("--cost-study", "--tasks", "1", "--seeds", "1", "--first-task", "3",
-                 "--variants", "peel,mppi.noise_correlation=0+mppi.sigma_min=0.25",
-                 "--set", "cost.barrier_w=4")
+                 "--variants", "peel,mppi.noise_correlation=0.0+mppi.sigma_min=0.25",
+                 "--set", "cost.barrier_w=4.0")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
-    assert report["tasks"] == [3] and report["base_overrides"] == {"cost.barrier_w": 4}
+    assert report["tasks"] == [3] and report["base_overrides"] == {"cost.barrier_w": 4.0}
     names = [v["variant"] for v in report["variants"]]
-    assert names == ["peel", "mppi.noise_correlation=0+mppi.sigma_min=0.25", "pytorch_mppi"]
-    assert report["variants"][1]["overrides"] == {"mppi.noise_correlation": 0,
+    assert names == ["peel", "mppi.noise_correlation=0.0+mppi.sigma_min=0.25", "pytorch_mppi"]
+    assert report["variants"][1]["overrides"] == {"mppi.noise_correlation": 0.0,
                                                   "mppi.sigma_min": 0.25}
     assert report["variants"][2]["diff_vs_pytorch_mppi"] == 0.0
 
 
 def test_bad_settings_are_named_and_exit_non_zero() -> None:
-    out = _bench("--cost-study", "--tasks", "1", "--set", "mppi.noise_correlation=2")
+    out = _bench("--cost-study", "--tasks", "1", "--set", "mppi.noise_correlation=2.0")
     assert out.returncode != 0
     assert "mppi.noise_correlation" in out.stderr and "Traceback" not in out.stderr
     out = _bench("--cost-study", "--tasks", "1", "--variants", "warp")

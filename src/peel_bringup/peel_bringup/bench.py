@@ -15,6 +15,7 @@ TARGETS: dict[str, tuple[str, str]] = {
     "sim": ("peel_sim_node.bench:main", "simulator throughput against raw stepSimulation (issue 3)"),
     "model": ("model_learner_node.bench:main", "training samples/s and inference latency (issue 4)"),
     "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
+    "ros": ("peel_msgs_py.ros.bench:main", "rclpy pub/sub and service round trips between two processes"),
 }
 
 

@@ -63,6 +63,30 @@ def split_tasks(topics: dict[str, dict[str, np.ndarray]]) -> list[dict[str, Any]
     return out
 
 
+def lockstep_speed(topics: dict[str, dict[str, np.ndarray]]) -> dict[str, float]:
+    """Simulated time per wall second in lockstep, from the bag: per task, the recorder's
+    receive times of consecutive commands (one per 0.5 s control period of simulated time);
+    the median wall time per period and the ratio of simulated to wall time."""
+    import peel_msgs_py.topics as T
+
+    cmd = topics.get(T.CMD_VEL)
+    if cmd is None or len(cmd["t_s"]) < 3:
+        return {}
+    walls, sims = [], []
+    for task in np.unique(cmd["task"]):
+        keep = cmd["task"] == task
+        t, log = cmd["t_s"][keep], cmd["log_ns"][keep] / 1e9
+        _, first = np.unique(np.round(t, 6), return_index=True)
+        t, log = t[first], log[first]
+        walls += np.diff(log).tolist()
+        sims += np.diff(t).tolist()
+    if not walls:
+        return {}
+    wall = float(np.median(walls))
+    return {"periods": len(walls), "wall_ms_per_period_median": round(wall * 1e3, 1),
+            "sim_per_wall": round(float(np.median(sims)) / wall, 1) if wall > 0 else float("inf")}
+
+
 def plot_tasks(tasks: list[dict[str, Any]], path: Path, title: str) -> Path:
     """Velocity and forces per task (one column per task), written atomically as a PNG."""
     import matplotlib
@@ -97,7 +121,7 @@ def plot_tasks(tasks: list[dict[str, Any]], path: Path, title: str) -> Path:
 
 
 def write_report(run_dir: Path, summary: dict[str, Any], png: Path, bag: Path,
-                 wall_s: float) -> Path:
+                 wall_s: float, speed: dict[str, float]) -> Path:
     """``demo.md`` beside ``summary.json``."""
     lines = [
         "# peel demo", "",
@@ -110,6 +134,10 @@ def write_report(run_dir: Path, summary: dict[str, Any], png: Path, bag: Path,
     for r in summary["results"]:
         lines.append(f"| {r['task']} | {r['outcome']} | {r['t_cpl_s']:.1f} | {r['J']:.2f} | "
                      f"{r['sum_fx_n']:.1f} | {r['sum_fz_n']:.1f} | v{r['model_version']} |")
+    if speed:
+        lines += ["", f"Lockstep: {speed['wall_ms_per_period_median']:.1f} ms of wall time per "
+                  f"0.5 s control period (median of {speed['periods']}), simulated time at "
+                  f"{speed['sim_per_wall']:.1f}x the wall clock (from the bag's receive times)."]
     lines += ["", f"![velocity and forces per task]({png.name})", "",
               f"Bag: `{bag}`; per-task numbers: `summary.json`; models: `models/`; "
               "node logs: `logs/`.", ""]
@@ -148,7 +176,12 @@ def main(argv: list[str] | None = None) -> int:
     png = plot_tasks(tasks, run_dir / "demo.png",
                      f"peel demo: {len(tasks)} tasks on the {args.plant} (read back from the bag)")
     summary = json.loads((run_dir / "summary.json").read_text())
-    report = write_report(run_dir, summary, png, bag, wall)
+    speed = lockstep_speed(topics)
+    report = write_report(run_dir, summary, png, bag, wall, speed)
+    if speed:
+        print(f"peel demo: lockstep {speed['wall_ms_per_period_median']:.1f} ms wall per 0.5 s "
+              f"control period: simulated time at {speed['sim_per_wall']:.1f}x the wall clock",
+              flush=True)
     print(f"peel demo: figure {png}\npeel demo: report {report}\npeel demo: bag {bag}\n"
           f"peel demo: models {run_dir / 'models'}  logs {run_dir / 'logs'}", flush=True)
     return status
