@@ -87,6 +87,9 @@ class PlannerNode(NamedRefusals, Node):
         self.announcer.cancel()
         self.destroy_timer(self.announcer)
         self.pub_version.publish(Int64(data=self.version))
+        self.get_logger().info(f"model v{self.version} announced after {waited:.2f} s "
+                               f"({self.pub_cmd.get_subscription_count()} readers of "
+                               f"{topics.CMD_VEL})")
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, **parts: float) -> None:

@@ -18,7 +18,6 @@ Same domain and discovery range as the caller (LOCALHOST unless set).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import statistics
 import subprocess
@@ -32,21 +31,19 @@ from rclpy.node import Node
 
 from .. import discovery
 from ..errors import PeelError
+from .main import run_node
 
 PING, PONG = "/peel_bench/ping", "/peel_bench/pong"
 
 
-def echo() -> int:
-    rclpy.init()
-    node = Node("peel_bench_echo")
-    pub = node.create_publisher(WrenchStamped, PONG, 10)
-    node.create_subscription(WrenchStamped, PING, pub.publish, 10)
-    print("ready", flush=True)
-    with contextlib.suppress(KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        rclpy.spin(node)
-    node.destroy_node()
-    rclpy.try_shutdown()
-    return 0
+class EchoNode(Node):
+    """Republishes every ping as a pong."""
+
+    def __init__(self) -> None:
+        super().__init__("peel_bench_echo")
+        pub = self.create_publisher(WrenchStamped, PONG, 10)
+        self.create_subscription(WrenchStamped, PING, pub.publish, 10)
+        print("ready", flush=True)
 
 
 def _quantiles(values: list[float]) -> dict[str, float]:
@@ -117,7 +114,11 @@ def measure(messages: int, rate: float, services: int) -> dict[str, object]:
                 "service_rtt_us": _quantiles(srv)}
     finally:
         proc.terminate()
-        proc.wait(timeout=30)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=30)
 
 
 def _rclpy_version() -> str:
@@ -139,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--echo", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.echo:
-        return echo()
+        return run_node("peel_bench_echo", EchoNode, None)
     if args.messages < 1 or args.services < 1 or not args.rate > 0:
         raise PeelError("--messages and --services must be >= 1, --rate > 0")
     discovery.confine()
