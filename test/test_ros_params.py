@@ -1,4 +1,4 @@
-"""Parameters as rclpy parameters with descriptors (docs/parameters.md).
+"""Parameters as rclpy parameters with descriptors (docs/runtime.md, "Parameters").
 
 In-process: a node declaring specs with :func:`peel_msgs_py.ros.parameters.declare` gets
 descriptors (description, ranges, read-only); a wrong-typed, out-of-range, read-only or

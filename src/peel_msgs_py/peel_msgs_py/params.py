@@ -14,7 +14,7 @@ validate a flat dict with :func:`validate`; a wrong-typed or out-of-range value 
 
 Typing follows rclpy's static parameter typing: a parameter's type is its default's, so an
 integer is refused for a DOUBLE parameter (``mppi.lambda: 1`` -- write ``1.0``), exactly as a
-node refuses it on a robot (docs/parameters.md).
+node refuses it on a robot (docs/runtime.md, "Parameters").
 
 Unknown names are refused too, by every node and command that reads a parameter file: each
 package registers the parameters its node declares under the entry-point group
