@@ -25,6 +25,7 @@ does not declare, and a ``/**`` name that no node declares.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
@@ -176,6 +177,7 @@ ENTRY_POINT_GROUP = "peel.parameters"
 _registry: dict[str, tuple[ParamSpec, ...]] | None = None
 
 
+@functools.cache
 def registered_nodes() -> dict[str, Any]:
     """Node name -> entry point of the ``peel.parameters`` group (nothing imported yet)."""
     from importlib.metadata import entry_points
