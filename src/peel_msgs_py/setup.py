@@ -17,7 +17,7 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="peel interfaces: topics, QoS, messages, codec, units, params, runtime, recorder.",
+    description="peel interfaces: topics, QoS, codec, units, params, rclpy helpers, recorder.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

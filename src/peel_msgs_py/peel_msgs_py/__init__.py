@@ -1,4 +1,4 @@
-"""Interface contract of peel: topic names, QoS, message classes mirroring Jazzy, trajectory
-codec, SI/paper unit conversion, parameter loading, the embedded DDS runtime and the MCAP
-recorder.
+"""Interface contract of peel: topic names, QoS, trajectory codec, SI/paper unit conversion,
+parameter loading and checking, the rclpy helpers the nodes share (``peel_msgs_py.ros``) and the
+MCAP recorder.
 """
