@@ -1,9 +1,11 @@
 """Which ROS runtime backs ``peel_msgs_py.runtime``: real rclpy or the embedded Cyclone DDS one.
 
-Automatic: rclpy when it is importable (a sourced ROS 2 Jazzy install), else the embedded
-runtime. ``PEEL_RUNTIME=rclpy`` forces rclpy (a :class:`PeelError` when it is missing),
-``PEEL_RUNTIME=dds`` forces the embedded runtime even where rclpy exists. The choice is made once,
-at first import, and is the same for every module of the runtime.
+Automatic: rclpy when it is importable *and* a ROS 2 install is sourced (``ROS_DISTRO`` set),
+else the embedded runtime. Jazzy's rclpy wheels in the venv (which the Nachi bridge node uses
+directly) do not switch the other nodes over by themselves. ``PEEL_RUNTIME=rclpy`` forces rclpy
+(a :class:`PeelError` when it is missing), ``PEEL_RUNTIME=dds`` forces the embedded runtime even
+where rclpy exists. The choice is made once, at first import, and is the same for every module
+of the runtime.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ def choose_backend(env: str | None = None) -> str:
     want = (os.environ.get("PEEL_RUNTIME", "") if env is None else env).strip().lower()
     if want not in ("", RCLPY, DDS):
         raise PeelError(f"PEEL_RUNTIME must be 'rclpy' or 'dds', got {want!r}")
-    if want == DDS:
+    if want == DDS or (not want and not os.environ.get("ROS_DISTRO")):
         return DDS
     try:
         import rclpy  # noqa: F401
