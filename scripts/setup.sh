@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Idempotent environment setup: creates .venv (Python 3.11 or 3.12), installs the pinned
-# dependencies and the five peel packages in editable mode. Re-running is a no-op when nothing
+# dependencies and the six peel packages in editable mode. Re-running is a no-op when nothing
 # changed (a stamp file holds the hash of every file that affects the install).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -25,7 +25,7 @@ if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel
   [ -x .venv/bin/python ] || "$PY" -m venv .venv
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip setuptools wheel
   .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-dev.txt
-  for pkg in peel_msgs_py peel_sim_node model_learner_node peel_planner_node peel_bringup; do
+  for pkg in peel_msgs_py peel_sim_node peel_nachi_bridge model_learner_node peel_planner_node peel_bringup; do
     .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
   done
   echo "$hash" > "$stamp"
