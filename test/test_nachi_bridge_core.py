@@ -20,6 +20,7 @@ from peel_nachi_bridge.config import load_config
 from peel_nachi_bridge.emulator import ControllerEmulator, EmulatorOptions
 from peel_nachi_bridge.faults import parse_fault
 from peel_nachi_bridge.link import Backoff
+from peel_nachi_bridge.robot import Robot
 from peel_nachi_bridge.task import TaskResult
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.env import PeelEnv
@@ -67,8 +68,6 @@ def run(faults: tuple[str, ...] = (), *, tasks: int = 1, speed: Speed = lambda k
         emu_speed: float = 4.0, q_ter_mm: float = 6.0, started: Callable[..., None] | None = None,
         **overrides: object) -> tuple[Driver, NachiBridge, ControllerEmulator]:
     """Run ``tasks`` started tasks through the bridge against a fresh emulator."""
-    from peel_nachi_bridge.robot import Robot
-
     robot = Robot(source="sim", seed=3, cfg=load_sim_config({"task.q_ter_mm": q_ter_mm}))
     opts = EmulatorOptions(port=0, speed=emu_speed, seed=3,
                            faults=tuple(parse_fault(f) for f in faults))
@@ -250,8 +249,6 @@ def test_commands_go_out_only_for_the_running_task() -> None:
 
 
 def test_closing_the_bridge_stops_a_running_task() -> None:
-    from peel_nachi_bridge.robot import Robot
-
     emu = ControllerEmulator(EmulatorOptions(port=0, speed=2.0),
                              robot=Robot(cfg=load_sim_config()), log=lambda text: None).start()
     cfg = load_config({"link.port": emu.port})
@@ -292,3 +289,25 @@ def test_backoff_grows_and_resets() -> None:
     assert [b.next() for _ in range(5)] == [0.2, 0.4, 0.8, 1.0, 1.0]
     b.reset()
     assert b.next() == 0.2
+
+
+def test_a_failing_listener_does_not_kill_the_link(capfd: pytest.CaptureFixture[str]) -> None:
+    class Broken(Driver):
+        def on_sample(self, index: int, s: p.Sample) -> None:
+            super().on_sample(index, s)
+            if round(s.t, 1) == 0.3:
+                raise RuntimeError("publisher gone")
+
+    emu = ControllerEmulator(EmulatorOptions(port=0, speed=4.0, seed=3),
+                             robot=Robot(seed=3, cfg=load_sim_config({"task.q_ter_mm": 6.0})),
+                             log=lambda text: None).start()
+    cfg = load_config({"link.port": emu.port})
+    driver = Broken(lambda k, t: 4.0)
+    bridge = NachiBridge(cfg.link, cfg.safety, driver)
+    driver.bridge = bridge
+    bridge.start().request_task(0)
+    results = driver.wait(1, 60.0)
+    bridge.close()
+    emu.close()
+    assert [(r.outcome, r.reason) for r in results] == [("done", "reached")]
+    assert "listener on_sample failed: RuntimeError: publisher gone" in capfd.readouterr().err

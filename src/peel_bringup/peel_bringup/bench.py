@@ -1,4 +1,4 @@
-"""``peel bench sim|model|planner``: benchmarks are commands that print one JSON object.
+"""``peel bench sim|model|planner|nachi``: benchmarks are commands that print one JSON object.
 
 Each target lives with the code it measures; this module only dispatches, so that
 ``peel bench --help`` lists them in one place.
@@ -15,6 +15,7 @@ TARGETS: dict[str, tuple[str, str]] = {
     "sim": ("peel_sim_node.bench:main", "simulator throughput against raw stepSimulation (issue 3)"),
     "model": ("model_learner_node.bench:main", "training samples/s and inference latency (issue 4)"),
     "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
+    "nachi": ("peel_nachi_bridge.bench:main", "STOP delay of the Nachi bridge on a force spike"),
 }
 
 

@@ -29,8 +29,10 @@ called from the bridge thread with no lock held.
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -141,17 +143,27 @@ class NachiBridge:
     # ------------------------------------------------------------------ the thread
     def _run(self) -> None:
         while not self._closing.is_set():
-            if self._conn is None:
-                self._connect()
-                continue
             try:
-                self._serve_once()
+                if self._conn is None:
+                    self._connect()
+                else:
+                    self._serve_once()
             except LinkError as exc:
                 self._link_lost(str(exc))
+            except Exception as exc:  # a bug must not leave the robot moving: drop the link
+                self._link_lost(f"internal error {type(exc).__name__}: {exc}")
         self._shutdown()
 
+    def _notify(self, fn: Callable[..., None], *args: object) -> None:
+        """Call the listener; its failure is printed, never raised into the link's thread."""
+        try:
+            fn(*args)
+        except Exception as exc:
+            print(f"nachi bridge: listener {getattr(fn, '__name__', fn)} failed: "
+                  f"{type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+
     def _log(self, level: str, text: str) -> None:
-        self.listener.on_log(level, text)
+        self._notify(self.listener.on_log, level, text)
 
     def _connect(self) -> None:
         wait = self._retry_at - time.monotonic()
@@ -270,7 +282,7 @@ class NachiBridge:
                             f"fz={s.fz:.2f} N)", at)
         task.add(s)
         self._last_sample = time.monotonic()
-        self.listener.on_sample(task.index, s)
+        self._notify(self.listener.on_sample, task.index, s)
 
     def _on_ok_start(self, msg: p.OkStart) -> None:
         conn = self._conn
@@ -354,7 +366,7 @@ class NachiBridge:
         result = task.result(outcome, reason, detail)
         level = "info" if outcome in ("done", "timeout") else "warn"
         self._log(level, f"task {task.index + 1}: {outcome} ({detail}), {len(task.samples)} samples")
-        self.listener.on_task_end(result)
+        self._notify(self.listener.on_task_end, result)
 
     def _not_started(self, reason: str, detail: str) -> None:
         with self._lock:
@@ -363,7 +375,7 @@ class NachiBridge:
         self._deadline = None
         if index is not None:
             self._log("error", f"task {index + 1}: not started: {detail}")
-            self.listener.on_task_end(TaskResult(index, False, "aborted", reason, detail))
+            self._notify(self.listener.on_task_end, TaskResult(index, False, "aborted", reason, detail))
 
     def _check_deadlines(self, now: float) -> None:
         state = self._state

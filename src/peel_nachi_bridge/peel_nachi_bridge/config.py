@@ -63,6 +63,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 )
 
 SPECS: tuple[ParamSpec, ...] = LINK_SPECS + SAFETY_SPECS + NODE_SPECS
+GROUPS = ("link", "safety", "node")
 
 
 @dataclass(frozen=True)
@@ -106,9 +107,11 @@ class BridgeConfig:
 
     @classmethod
     def from_params(cls, flat: Mapping[str, Any]) -> BridgeConfig:
-        """Validate a flat dict of dotted names (unknown ones refused). Names without a dot are
-        rclpy's own (``use_sim_time``, ``start_type_description_service``) and are ignored."""
-        values = validate(SPECS, {k: v for k, v in flat.items() if "." in k})
+        """Validate the ``link.*``, ``safety.*`` and ``node.*`` entries of a flat dict of dotted
+        names (an unknown name in these groups is refused). Other names are the other nodes'
+        (``task.*`` from a shared ``/**`` section, as ``peel graph --params`` passes one file to
+        every node) or rclpy's own (``use_sim_time``) and are ignored."""
+        values = validate(SPECS, {k: v for k, v in flat.items() if k.split(".")[0] in GROUPS})
         host = values["link.host"]
         if not host or any(c.isspace() for c in host):
             raise ParameterError(f"parameter 'link.host' = {host!r} must be a non-empty address")

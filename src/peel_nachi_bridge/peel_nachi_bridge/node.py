@@ -140,7 +140,14 @@ class NachiBridgeNode(Node):
         self.ended.put(result)
 
     def on_log(self, level: str, text: str) -> None:
-        getattr(self.get_logger(), level)(text)
+        # one call site per severity: rclpy's logger refuses a call site that changes severity
+        log = self.get_logger()
+        if level == "error":
+            log.error(text)
+        elif level == "warn":
+            log.warning(text)
+        else:
+            log.info(text)
 
     # -- tasks ----------------------------------------------------------------------------------
     def publish_task(self, result: TaskResult) -> None:
