@@ -65,7 +65,7 @@ class Driver:
 
 
 def run(faults: tuple[str, ...] = (), *, tasks: int = 1, speed: Speed = lambda k, t: 4.0,
-        emu_speed: float = 4.0, q_ter_mm: float = 6.0, started: Callable[..., None] | None = None,
+        emu_speed: float = 2.0, q_ter_mm: float = 6.0, started: Callable[..., None] | None = None,
         **overrides: object) -> tuple[Driver, NachiBridge, ControllerEmulator]:
     """Run ``tasks`` started tasks through the bridge against a fresh emulator."""
     robot = Robot(source="sim", seed=3, cfg=load_sim_config({"task.q_ter_mm": q_ter_mm}))

@@ -131,6 +131,18 @@ def test_robot_watchdog_stop_and_ping(robot: Robot) -> None:
     assert not robot.running and robot.tick() == []
 
 
+def test_a_refused_v_keeps_the_speed_and_feeds_the_watchdog(robot: Robot) -> None:
+    robot.command(p.Start(), 0.0)
+    robot.command(p.Velocity(1.0), 0.0)
+    out: list[object] = []
+    while not out or not isinstance(out[-1], p.Done):
+        if abs(robot.t - 0.6) < 1e-9:
+            assert robot.command(p.Velocity(25.0), robot.t)[0].code == p.ERR_RANGE
+        out = robot.tick()
+    assert robot.u == 1.0  # the refused command did not change the speed
+    assert out[-1] == p.Done(1.6, "alarm")  # 1.0 s after the refused V, not after the last good one
+
+
 # ------------------------------------------------------------------------------------ emulator
 class Reader:
     """Lines from a socket, keeping partial lines between calls."""

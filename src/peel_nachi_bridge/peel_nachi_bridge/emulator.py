@@ -243,7 +243,7 @@ class ControllerEmulator:
         was_running, task = self.robot.running, self.robot.task
         out = self.robot.command(msg, now_t)
         self._note_command(msg, out, was_running, task, now_t)
-        if isinstance(msg, p.Start) and self.robot.running:
+        if isinstance(msg, p.Start) and not was_running and self.robot.running:
             self._begin_task()
         return out
 

@@ -28,7 +28,7 @@ DEFAULT_PORT = 48100
 MAX_LINE = 256
 #: Controller time between samples, s (section 4.2: 100 ms).
 SAMPLE_PERIOD_S = 0.1
-#: No accepted ``V`` for this long (controller time, s) during a task trips the watchdog.
+#: No ``V`` (accepted or refused) for this long (controller time, s) during a task trips the watchdog.
 WATCHDOG_S = 1.0
 #: The controller's accepted command range, mm/s.
 V_MIN_MMPS, V_MAX_MMPS = 0.0, 20.0

@@ -11,7 +11,8 @@ the env's own stop (``task.f_prewarn_n``) is moved to the controller's force ala
 (``force_alarm_n``, 25 N by default), because the 20 N prewarning (4.2) is the bridge's to act on.
 The controller ends a task with ``DONE reached`` at q_ter, ``DONE timeout`` at t_max,
 ``ALARM 20`` + ``DONE alarm`` at the force alarm and ``ALARM 10 watchdog`` + ``DONE alarm`` when
-no accepted ``V`` came for :data:`~.protocol.WATCHDOG_S` of controller time.
+no ``V`` came for :data:`~.protocol.WATCHDOG_S` of controller time (a ``V`` refused for its
+range still counts: the planner is alive; the speed in force stays).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ class Robot:
         self.tasks_started = 0
         self.task = -1  # index of the current (or last) task
         self.u = 0.0  # speed in force, mm/s
-        self.last_v_t = 0.0  # controller time of the last accepted V
+        self.last_v_t = 0.0  # controller time of the last V (watchdog)
         self.t = 0.0  # controller time of the last sample of the current task
 
     # ------------------------------------------------------------------ commands
@@ -73,10 +74,11 @@ class Robot:
     def _velocity(self, u: float, now_t: float) -> list[Any]:
         if not self.running:
             return [p.Err(p.ERR_NO_TASK, "no task running")]
+        self.last_v_t = now_t
         if not p.V_MIN_MMPS <= u <= p.V_MAX_MMPS:
             return [p.Err(p.ERR_RANGE, f"V out of range {p.V_MIN_MMPS:g}..{p.V_MAX_MMPS:g} mm/s: "
                                        f"{u:.4f}")]
-        self.u, self.last_v_t = u, now_t
+        self.u = u
         return []
 
     # ------------------------------------------------------------------ time
