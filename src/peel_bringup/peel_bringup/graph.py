@@ -1,15 +1,16 @@
 """``peel graph``: run the ROS 2 node graph as separate OS processes (issue 7, docs/graph.md).
 
-    peel graph [--plant sim|plant] [--tasks K] [--record BAG] [--params FILE] [--seed S]
-               [--out DIR] [--keep-going] [--verbose]
+    peel graph [--plant sim|plant|nachi] [--tasks K] [--record BAG] [--params FILE] [--seed S]
+               [--nachi-host HOST] [--nachi-port PORT] [--out DIR] [--keep-going] [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
 ``peel record``, with ``--record``) as child processes on the selected runtime (``PEEL_RUNTIME``,
 ``ROS_DOMAIN_ID`` are passed on), each with its ``config/<node>.yaml``, the override file and a
-few ``-p`` settings, exactly as ``ros2 run`` would get them. The launcher itself joins the graph
-as a listener (``peel_graph``: ``/peel/trajectory``, ``/peel/model_version``) and prints one line
-per finished task: outcome, T_cpl, J (Eq. 3, :func:`peel_planner_node.cost.episode_cost`) and the
-model version the task ran with.
+few ``-p`` settings, exactly as ``ros2 run`` would get them. ``--plant nachi`` starts the bridge to
+the Nachi controller (``peel_nachi_bridge``, docs/nachi.md) in the simulator bridge's place. The
+launcher itself joins the graph as a listener (``peel_graph``: ``/peel/trajectory``,
+``/peel/model_version``) and prints one line per finished task: outcome, T_cpl, J (Eq. 3,
+:func:`peel_planner_node.cost.episode_cost`) and the model version the task ran with.
 
 It stops cleanly after K tasks (after the learner's last swap, ``graph.final_model_wait_s``) or
 on Ctrl-C: SIGINT to every node, the recorder last so the bag is closed and readable; exit
@@ -47,6 +48,8 @@ from peel_msgs_py.params import (
 
 NODE_NAME = "peel_bringup"
 NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
+#: The node that stands in for ``peel_sim_node`` with ``--plant nachi``.
+NACHI = "peel_nachi_bridge"
 RECORDER = "recorder"
 #: Nodes whose death the graph survives with --keep-going.
 OPTIONAL = ("model_learner_node", RECORDER)
@@ -54,7 +57,8 @@ OPTIONAL = ("model_learner_node", RECORDER)
 #: The ``graph:`` group of config/peel_bringup.yaml.
 GRAPH_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("graph.tasks", int, 3, "consecutive tasks K", min=1),
-    ParamSpec("graph.plant", str, "sim", "sim or plant", choices=("sim", "plant")),
+    ParamSpec("graph.plant", str, "sim", "sim, plant or nachi (the robot controller)",
+              choices=("sim", "plant", "nachi")),
     ParamSpec("graph.seed", int, 0, "seed of the task sequence", min=0),
     ParamSpec("graph.out_dir", str, "runs/graph", "parent of the run directories"),
     ParamSpec("graph.final_model_wait_s", float, 300.0,
@@ -95,9 +99,14 @@ def node_command(name: str, override: str | None, sets: dict[str, Any]) -> list[
 
 
 def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: bool,
-                  ) -> dict[str, dict[str, Any]]:
-    """The ``-p`` settings the launcher gives each node."""
+                  link: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """The ``-p`` settings the launcher gives each node (``link``: the bridge's ``link.*``)."""
     return {
+        NACHI: {
+            "use_sim_time": True, "node.tasks": tasks, **(link or {}),
+            "node.min_subscribers": 2 if recording else 1,
+            "node.min_traj_subscribers": 3 if recording else 2,
+        },
         "peel_sim_node": {
             "use_sim_time": True, "node.source": plant, "node.tasks": tasks, "node.seed": seed,
             "node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
@@ -210,8 +219,14 @@ class _Interrupt:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="peel graph", description=__doc__.split("\n\n")[0])
-    p.add_argument("--plant", choices=("sim", "plant"), default=None,
-                   help="run the tasks on the simulator or on the plant (default: graph.plant)")
+    p.add_argument("--plant", choices=("sim", "plant", "nachi"), default=None,
+                   help="run the tasks on the simulator, the plant or the Nachi controller "
+                        "(default: graph.plant)")
+    p.add_argument("--nachi-host", default=None,
+                   help="controller address for --plant nachi (default: link.host of "
+                        "config/peel_nachi_bridge.yaml)")
+    p.add_argument("--nachi-port", type=int, default=None,
+                   help="controller TCP port for --plant nachi (default: link.port)")
     p.add_argument("--tasks", type=int, default=None, metavar="K",
                    help="consecutive tasks, then stop (default: graph.tasks)")
     p.add_argument("--record", metavar="BAG", default=None,
@@ -250,7 +265,14 @@ def run_graph(args: argparse.Namespace) -> int:
     if override is not None and not Path(override).is_file():
         raise PeelError(f"--params: no such file {override}")
     gp = graph_params(override)
-    for name in NODES:  # a bad override file fails here, before anything starts
+    plant = args.plant or gp["graph.plant"]
+    bridge = NACHI if plant == "nachi" else "peel_sim_node"
+    link = {key: value for key, value in (("link.host", args.nachi_host),
+                                          ("link.port", args.nachi_port)) if value is not None}
+    if link and plant != "nachi":
+        raise PeelError("--nachi-host / --nachi-port need --plant nachi")
+    nodes = (bridge, "peel_planner_node", "model_learner_node")
+    for name in nodes:  # a bad override file fails here, before anything starts
         if default_param_file(name).is_file():
             load_param_file(default_param_file(name), name)
         if override:
@@ -258,7 +280,6 @@ def run_graph(args: argparse.Namespace) -> int:
     tasks = args.tasks if args.tasks is not None else gp["graph.tasks"]
     if tasks < 1:
         raise PeelError(f"--tasks must be >= 1, got {tasks}")
-    plant = args.plant or gp["graph.plant"]
     seed = args.seed if args.seed is not None else gp["graph.seed"]
     if seed < 0:
         raise PeelError(f"--seed must be >= 0, got {seed}")
@@ -273,12 +294,12 @@ def run_graph(args: argparse.Namespace) -> int:
     env["PYTHONUNBUFFERED"] = "1"
     env.setdefault("PEEL_CONFIG_DIR", str(config_dir()))
     env.setdefault("OMP_NUM_THREADS", "1")
-    sets = node_settings(plant, tasks, seed, run_dir, bag is not None)
+    sets = node_settings(plant, tasks, seed, run_dir, bag is not None, link)
     children: list[Child] = []
     if bag is not None:
         children.append(Child(RECORDER, [sys.executable, "-m", "peel_msgs_py.recorder_cli",
                                          "--out", str(bag)], run_dir / "logs" / "recorder.log"))
-    for name in ("model_learner_node", "peel_planner_node", "peel_sim_node"):
+    for name in ("model_learner_node", "peel_planner_node", bridge):
         children.append(Child(name, node_command(name, override, sets[name]),
                               run_dir / "logs" / f"{name}.log"))
 
