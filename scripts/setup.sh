@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Idempotent environment setup: creates .venv (Python 3.11 or 3.12), installs the pinned
 # dependencies, ROS 2 Jazzy's rclpy and message packages (pip wheels, requirements-ros.txt) and
-# the five peel packages in editable mode. Re-running is a no-op when nothing changed (a stamp
+# the six peel packages in editable mode. Re-running is a no-op when nothing changed (a stamp
 # file holds the hash of every file that affects the install).
 #
 # On a machine with a sourced ROS 2 Jazzy install (ROS_DISTRO=jazzy) the venv sees the system
@@ -48,7 +48,7 @@ if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel
          "source /opt/ros/jazzy/setup.bash or unset ROS_DISTRO to use the pip wheels" >&2
     exit 2
   fi
-  for pkg in peel_msgs_py peel_sim_node model_learner_node peel_planner_node peel_bringup; do
+  for pkg in peel_msgs_py peel_sim_node peel_nachi_bridge model_learner_node peel_planner_node peel_bringup; do
     .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
   done
   echo "$hash" > "$stamp"

@@ -11,11 +11,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ["peel_msgs_py", "peel_sim_node", "model_learner_node", "peel_planner_node", "peel_bringup"]
+PACKAGES = ["peel_msgs_py", "peel_sim_node", "peel_nachi_bridge", "model_learner_node", "peel_planner_node",
+            "peel_bringup"]
 #: Allowed imports between our packages (the dependency direction of docs/CONTRACT.md).
 ALLOWED = {
     "peel_msgs_py": set(),
     "peel_sim_node": {"peel_msgs_py"},
+    "peel_nachi_bridge": {"peel_msgs_py", "peel_sim_node"},  # the emulator's plant
     "model_learner_node": {"peel_msgs_py", "peel_sim_node"},  # dataset reader (peel train)
     "peel_planner_node": {"peel_msgs_py", "model_learner_node"},
     "peel_bringup": set(PACKAGES) - {"peel_bringup"},
@@ -76,7 +78,7 @@ def _peel(*args: str) -> subprocess.CompletedProcess[str]:
 def test_peel_help_lists_subcommands() -> None:
     out = _peel("--help")
     assert out.returncode == 0
-    for name in ("dataset", "train", "bench", "experiment", "graph", "demo"):
+    for name in ("dataset", "train", "bench", "experiment", "graph", "demo", "nachi-emulator"):
         assert f"  {name}" in out.stdout
 
 

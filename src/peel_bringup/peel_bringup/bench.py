@@ -1,4 +1,4 @@
-"""``peel bench sim|model|planner``: benchmarks are commands that print one JSON object.
+"""``peel bench sim|model|planner|ros|nachi``: benchmarks are commands that print one JSON object.
 
 Each target lives with the code it measures; this module only dispatches, so that
 ``peel bench --help`` lists them in one place.
@@ -16,6 +16,7 @@ TARGETS: dict[str, tuple[str, str]] = {
     "model": ("model_learner_node.bench:main", "training samples/s and inference latency (issue 4)"),
     "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
     "ros": ("peel_msgs_py.ros.bench:main", "rclpy pub/sub and service round trips between two processes"),
+    "nachi": ("peel_nachi_bridge.bench:main", "STOP delay of the Nachi bridge on a force spike"),
 }
 
 

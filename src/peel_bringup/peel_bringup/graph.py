@@ -1,15 +1,17 @@
 """``peel graph``: run the ROS 2 node graph as separate OS processes (docs/graph.md).
 
-    peel graph [--plant sim|plant] [--tasks K] [--record BAG] [--params FILE] [--seed S]
-               [--out DIR] [--keep-going] [--verbose]
+    peel graph [--plant sim|plant|nachi] [--tasks K] [--record BAG] [--params FILE] [--seed S]
+               [--nachi-host HOST] [--nachi-port PORT] [--out DIR] [--keep-going] [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
 ``peel record``, with ``--record``) as child processes on rclpy (``ROS_DOMAIN_ID`` is passed on;
 ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is LOCALHOST unless set), each with its
 ``config/<node>.yaml``, the override file and a few ``-p`` settings, exactly as ``ros2 run``
-would get them. Every node's parameters are checked before anything starts (unknown names,
-types, ranges: one line, exit 2); a node that refuses its parameters anyway exits 2, and so
-does the graph. The launcher itself joins the graph
+would get them. ``--plant nachi`` starts the bridge to the Nachi robot controller
+(``peel_nachi_bridge``, docs/nachi.md) at ``--nachi-host:--nachi-port`` in the simulator
+bridge's place; it publishes the same topics, so nothing else changes. Every node's parameters
+are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node
+that refuses its parameters anyway exits 2, and so does the graph. The launcher itself joins the graph
 as a listener (``peel_graph``: ``/peel/trajectory``, ``/peel/model_version``) and prints one line
 per finished task: outcome, T_cpl, J (Eq. 3, :func:`peel_planner_node.cost.episode_cost`) and the
 model version the task ran with.
@@ -45,6 +47,8 @@ from .parameters import GRAPH_SPECS
 
 NODE_NAME = "peel_bringup"
 NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
+#: The node that stands in for ``peel_sim_node`` with ``--plant nachi`` (docs/nachi.md).
+NACHI = "peel_nachi_bridge"
 RECORDER = "recorder"
 #: Nodes whose death the graph survives with --keep-going.
 OPTIONAL = ("model_learner_node", RECORDER)
@@ -68,13 +72,18 @@ def node_specs(name: str) -> tuple[Any, ...]:
 def check_node_params(override: str | None, sets: dict[str, dict[str, Any]]) -> None:
     """Refuse, before any process starts, what a node would refuse at its start: unknown names
     (sections of the files included), wrong types (an integer for a DOUBLE too), values out of
-    range, with the parameter named (:class:`~peel_msgs_py.errors.ParameterError`)."""
-    for name in NODES:
+    range, with the parameter named (:class:`~peel_msgs_py.errors.ParameterError`). ``sets``
+    names the nodes to start and their ``-p`` settings."""
+    for name, settings in sets.items():
         specs = node_specs(name)
         known = {s.name for s in specs}
         # /** names this node does not declare are for other nodes (checked by the loader)
         flat = {k: v for k, v in load_node_params(name, override).items() if k in known}
-        validate(specs, {**flat, **sets[name]})
+        values = validate(specs, {**flat, **settings})
+        if name == NACHI:  # what the bridge checks across its parameters (host, backoff)
+            from peel_nachi_bridge.config import BridgeConfig
+
+            BridgeConfig.from_params(values)
 
 
 def _p(name: str, value: Any) -> list[str]:
@@ -102,16 +111,21 @@ def node_command(name: str, override: str | None, sets: dict[str, Any]) -> list[
 
 
 def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: bool,
-                  ) -> dict[str, dict[str, Any]]:
-    """The ``-p`` settings the launcher gives each node."""
+                  link: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """The nodes to start and the ``-p`` settings the launcher gives each: the simulator bridge
+    (``plant`` sim or plant) or the Nachi bridge (``plant`` nachi; ``link``: its ``link.host``,
+    ``link.port``), the planner and the learner."""
+    readers = {"node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
+               "node.min_traj_subscribers": 3 if recording else 2}  # learner, launcher (+ rec.)
+    if plant == "nachi":  # the substrates and the plant are the controller's
+        bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers, **(link or {})}}
+    else:
+        bridge = {"peel_sim_node": {"use_sim_time": True, "node.source": plant,
+                                    "node.tasks": tasks, "node.seed": seed, **readers}}
     return {
-        "peel_sim_node": {
-            "use_sim_time": True, "node.source": plant, "node.tasks": tasks, "node.seed": seed,
-            "node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
-            "node.min_traj_subscribers": 3 if recording else 2,  # learner, launcher (+ rec.)
-        },
+        **bridge,
         "peel_planner_node": {"use_sim_time": True, "node.seed": seed,
-                              "node.min_cmd_subscribers": 2 if recording else 1},  # sim (+ rec.)
+                              "node.min_cmd_subscribers": 2 if recording else 1},  # bridge (+ rec.)
         "model_learner_node": {
             "use_sim_time": True, "node.out_dir": str((run_dir / "models").resolve()),
         },
@@ -211,8 +225,14 @@ class _Interrupt:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="peel graph", description=__doc__.split("\n\n")[0])
-    p.add_argument("--plant", choices=("sim", "plant"), default=None,
-                   help="run the tasks on the simulator or on the plant (default: graph.plant)")
+    p.add_argument("--plant", choices=("sim", "plant", "nachi"), default=None,
+                   help="run the tasks on the simulator, the plant or the Nachi robot "
+                        "controller (default: graph.plant)")
+    p.add_argument("--nachi-host", default=None, metavar="HOST",
+                   help="controller address for --plant nachi (default: link.host of "
+                        "config/peel_nachi_bridge.yaml)")
+    p.add_argument("--nachi-port", type=int, default=None, metavar="PORT",
+                   help="controller TCP port for --plant nachi (default: link.port)")
     p.add_argument("--tasks", type=int, default=None, metavar="K",
                    help="consecutive tasks, then stop (default: graph.tasks)")
     p.add_argument("--record", metavar="BAG", default=None,
@@ -256,6 +276,13 @@ class Run:
     seed: int
     run_dir: Path
     bag: Path | None
+    #: the Nachi bridge's ``link.*`` settings from --nachi-host / --nachi-port
+    link: dict[str, Any] = field(default_factory=dict)
+
+    def settings(self) -> dict[str, dict[str, Any]]:
+        """The nodes to start and their ``-p`` settings (:func:`node_settings`)."""
+        return node_settings(self.plant, self.tasks, self.seed, self.run_dir,
+                             self.bag is not None, self.link)
 
 
 def resolve(args: argparse.Namespace) -> Run:
@@ -275,20 +302,27 @@ def resolve(args: argparse.Namespace) -> Run:
     bag = Path(args.record) if args.record else None
     if bag is not None and bag.exists():
         raise PeelError(f"--record: {bag} already exists")
-    run = Run(override, gp, tasks, args.plant or gp["graph.plant"], seed, run_dir, bag)
-    check_node_params(override, node_settings(run.plant, tasks, seed, run_dir, bag is not None))
+    plant = args.plant or gp["graph.plant"]
+    link = {key: value for key, value in (("link.host", args.nachi_host),
+                                          ("link.port", args.nachi_port)) if value is not None}
+    if link and plant != "nachi":
+        raise PeelError("--nachi-host / --nachi-port need --plant nachi")
+    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link)
+    check_node_params(override, run.settings())
     return run
 
 
 def children_of(run: Run) -> list[Child]:
-    """The recorder (first, so it hears everything) and the three nodes."""
+    """The recorder (first, so it hears everything) and the three nodes (the bridge last, so
+    its readers are there when it starts)."""
     logs = run.run_dir / "logs"
-    sets = node_settings(run.plant, run.tasks, run.seed, run.run_dir, run.bag is not None)
+    sets = run.settings()
     children: list[Child] = []
     if run.bag is not None:
         children.append(Child(RECORDER, [sys.executable, "-m", "peel_msgs_py.recorder_cli",
                                          "--out", str(run.bag)], logs / "recorder.log"))
-    for name in ("model_learner_node", "peel_planner_node", "peel_sim_node"):
+    bridge = NACHI if run.plant == "nachi" else "peel_sim_node"
+    for name in ("model_learner_node", "peel_planner_node", bridge):
         children.append(Child(name, node_command(name, run.override, sets[name]),
                               logs / f"{name}.log"))
     return children
@@ -384,8 +418,8 @@ def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
 
 
 def tear_down(children: list[Child], timeout_s: float) -> None:
-    """One SIGINT per node (simulator, planner, learner), each waited for (then SIGTERM,
-    SIGKILL after the grace period); the recorder last, so the bag holds everything."""
+    """One SIGINT per node (simulator or Nachi bridge, planner, learner), each waited for (then
+    SIGTERM, SIGKILL after the grace period); the recorder last, so the bag holds everything."""
     nodes = [c for c in children if c.name != RECORDER]
     for child in nodes:
         child.signal(signal.SIGINT)

@@ -12,7 +12,9 @@ NODE_NAME = "peel_bringup"
 #: The ``graph:`` group.
 GRAPH_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("graph.tasks", int, 3, "consecutive tasks K", min=1),
-    ParamSpec("graph.plant", str, "sim", "sim or plant", choices=("sim", "plant")),
+    ParamSpec("graph.plant", str, "sim",
+              "sim, plant, or nachi (the Nachi robot controller, docs/nachi.md)",
+              choices=("sim", "plant", "nachi")),
     ParamSpec("graph.seed", int, 0, "seed of the task sequence", min=0),
     ParamSpec("graph.out_dir", str, "runs/graph", "parent of the run directories"),
     ParamSpec("graph.final_model_wait_s", float, 300.0,
