@@ -47,9 +47,10 @@ def _console_scripts(pkg: str) -> dict[str, str]:
     return {}
 
 
-@pytest.mark.parametrize("record", ["", "/tmp/bag"])
+@pytest.mark.parametrize(("record", "plant"), [("", "sim"), ("/tmp/bag", "plant"),
+                                               ("/tmp/bag", "nachi")])
 def test_launch_file_names_existing_executables_nodes_and_files(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str, plant: str) -> None:
     share = tmp_path / "share"
     (share / "peel_bringup").mkdir(parents=True)
     (share / "peel_bringup" / "config").symlink_to(ROOT / "config")
@@ -61,13 +62,18 @@ def test_launch_file_names_existing_executables_nodes_and_files(
     desc = launch.generate_launch_description()
     declared = {a.args[0]: a.kwargs.get("default_value") for a in desc.args[0]
                 if type(a).__name__ == "DeclareLaunchArgument"}
-    assert set(declared) == {"plant", "tasks", "seed", "params", "record", "out"}
+    assert set(declared) == {"plant", "tasks", "seed", "params", "record", "out", "nachi_host",
+                             "nachi_port"}
     (opaque,) = [a for a in desc.args[0] if type(a).__name__ == "OpaqueFunction"]
-    context = types.SimpleNamespace(launch_configurations={**declared, "record": record})
+    given = {"record": record, "plant": plant}
+    if plant == "nachi":
+        given.update(nachi_host="10.0.0.5", nachi_port="48113")
+    context = types.SimpleNamespace(launch_configurations={**declared, **given})
     actions = opaque.kwargs["function"](context)
     nodes = [a for a in actions if type(a).__name__ == "Node"]
     names = {n.kwargs["name"] for n in nodes}
-    assert names == {"peel_sim_node", "peel_planner_node", "model_learner_node"} | (
+    bridge = "peel_nachi_bridge" if plant == "nachi" else "peel_sim_node"
+    assert names == {bridge, "peel_planner_node", "model_learner_node"} | (
         {"peel_recorder"} if record else set())
 
     from peel_msgs_py.params import load_param_file, registered_nodes
@@ -87,6 +93,10 @@ def test_launch_file_names_existing_executables_nodes_and_files(
             load_param_file(f, name)
         overrides = next(p for p in node.kwargs["parameters"] if isinstance(p, dict))
         assert overrides["use_sim_time"] is True
+        if name == bridge:  # the state's publisher runs the K tasks and ends the launch
+            assert overrides["node.tasks"] == 3 and overrides["node.exit_when_done"] is True
+        if name == "peel_nachi_bridge":
+            assert (overrides["link.host"], overrides["link.port"]) == ("10.0.0.5", 48113)
         known = {s.name for s in importlib.import_module(f"{name}.parameters").SPECS}
         assert set(overrides) <= known, set(overrides) - known
     handlers = [a for a in actions if type(a).__name__ == "RegisterEventHandler"]

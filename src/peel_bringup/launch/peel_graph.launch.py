@@ -4,14 +4,20 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
 
     ros2 launch peel_bringup peel_graph.launch.py plant:=plant tasks:=3 seed:=0 \\
         params:=/path/override.yaml record:=/path/bag out:=runs/launch
+    ros2 launch peel_bringup peel_graph.launch.py plant:=nachi nachi_host:=192.168.0.20 \\
+        nachi_port:=48100 tasks:=3
 
+* ``plant:=nachi`` starts the bridge to the Nachi robot controller (``peel_nachi_bridge``,
+  docs/nachi.md) in the simulator's place, at ``nachi_host:nachi_port`` (empty: the
+  ``link.host`` / ``link.port`` of its config file); the substrates are the robot's, ``seed``
+  goes to the planner only;
 * every node gets ``share/peel_bringup/config/<node>.yaml``, then the override file (if any),
   then ``use_sim_time: true`` and the settings below;
 * ``record:=BAG`` adds the recorder (``ros2 run peel_msgs_py peel_recorder --out BAG``, the
   same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
-* the simulator exits after the K tasks and the learner's last swap (``node.exit_when_done``);
-  its exit, or any node's death, shuts the whole launch down (the recorder closes its bag on
-  the SIGINT that launch sends).
+* the simulator (or the bridge) exits after the K tasks and the learner's last swap
+  (``node.exit_when_done``); its exit, or any node's death, shuts the whole launch down (the
+  recorder closes its bag on the SIGINT that launch sends).
 """
 
 from __future__ import annotations
@@ -26,26 +32,41 @@ from launch.events import Shutdown
 from launch_ros.actions import Node
 
 NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
+NACHI = "peel_nachi_bridge"
+
+
+def _bridge(arg: dict) -> tuple[str, dict]:
+    """The node that publishes the state (simulator or Nachi bridge) and its settings."""
+    readers = {"node.min_subscribers": 2 if arg["record"] else 1,
+               "node.min_traj_subscribers": 2 if arg["record"] else 1}
+    common = {"node.tasks": int(arg["tasks"]), "node.exit_when_done": True, **readers}
+    if arg["plant"] != "nachi":
+        return "peel_sim_node", {"node.source": arg["plant"], "node.seed": int(arg["seed"]),
+                                 **common}
+    link = {}
+    if arg["nachi_host"]:
+        link["link.host"] = arg["nachi_host"]
+    if arg["nachi_port"]:
+        link["link.port"] = int(arg["nachi_port"])
+    return NACHI, {**common, **link}
 
 
 def _setup(context, *args, **kwargs):
     cfg = os.path.join(get_package_share_directory("peel_bringup"), "config")
-    arg = {name: context.launch_configurations[name]
-           for name in ("plant", "tasks", "seed", "params", "record", "out")}
+    arg = {name: context.launch_configurations[name] for name in (
+        "plant", "tasks", "seed", "params", "record", "out", "nachi_host", "nachi_port")}
     override = [arg["params"]] if arg["params"] else []
     models = os.path.abspath(os.path.join(arg["out"], "models"))
+    bridge, settings = _bridge(arg)
     extra = {
-        "peel_sim_node": {"node.source": arg["plant"], "node.tasks": int(arg["tasks"]),
-                          "node.seed": int(arg["seed"]), "node.exit_when_done": True,
-                          "node.min_subscribers": 2 if arg["record"] else 1,
-                          "node.min_traj_subscribers": 2 if arg["record"] else 1},
+        bridge: settings,
         "peel_planner_node": {"node.seed": int(arg["seed"]),
                               "node.min_cmd_subscribers": 2 if arg["record"] else 1},
         "model_learner_node": {"node.out_dir": models},
     }
     actions = []
     nodes = {}
-    for name in NODES:
+    for name in (bridge, *NODES[1:]):
         nodes[name] = Node(
             package=name, executable=name, name=name, output="screen",
             parameters=[os.path.join(cfg, f"{name}.yaml"), *override,
@@ -56,8 +77,8 @@ def _setup(context, *args, **kwargs):
         actions.insert(0, Node(package="peel_msgs_py", executable="peel_recorder",
                                name="peel_recorder", output="screen", sigterm_timeout="20",
                                arguments=["--out", arg["record"]]))
-    # the simulator finishing (or any node dying) ends the launch
-    for name in NODES:
+    # the simulator or the bridge finishing (or any node dying) ends the launch
+    for name in nodes:
         actions.append(RegisterEventHandler(OnProcessExit(
             target_action=nodes[name],
             on_exit=[EmitEvent(event=Shutdown(reason=f"{name} exited"))])))
@@ -66,8 +87,15 @@ def _setup(context, *args, **kwargs):
 
 def generate_launch_description() -> LaunchDescription:
     return LaunchDescription([
-        DeclareLaunchArgument("plant", default_value="sim", choices=["sim", "plant"],
-                              description="run the tasks on the simulator or the plant"),
+        DeclareLaunchArgument("plant", default_value="sim", choices=["sim", "plant", "nachi"],
+                              description="run the tasks on the simulator, the plant or the "
+                                          "Nachi robot controller"),
+        DeclareLaunchArgument("nachi_host", default_value="",
+                              description="controller address for plant:=nachi (empty: "
+                                          "link.host of config/peel_nachi_bridge.yaml)"),
+        DeclareLaunchArgument("nachi_port", default_value="",
+                              description="controller TCP port for plant:=nachi (empty: "
+                                          "link.port)"),
         DeclareLaunchArgument("tasks", default_value="3", description="consecutive tasks K"),
         DeclareLaunchArgument("seed", default_value="0", description="task sequence seed"),
         DeclareLaunchArgument("params", default_value="",
