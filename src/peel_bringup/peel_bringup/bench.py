@@ -1,4 +1,4 @@
-"""``peel bench sim|model|planner|ros|nachi``: benchmarks are commands that print one JSON object.
+"""``peel bench sim|model|planner|ros|nachi|nachi-graph``: benchmarks are commands that print one JSON object.
 
 Each target lives with the code it measures; this module only dispatches, so that
 ``peel bench --help`` lists them in one place.
@@ -17,6 +17,8 @@ TARGETS: dict[str, tuple[str, str]] = {
     "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
     "ros": ("peel_msgs_py.ros.bench:main", "rclpy pub/sub and service round trips between two processes"),
     "nachi": ("peel_nachi_bridge.bench:main", "STOP delay of the Nachi bridge on a force spike"),
+    "nachi-graph": ("peel_bringup.bench_nachi:main",
+                    "cost per task, simulator bridge vs Nachi bridge on the emulator, same seed"),
 }
 
 
@@ -24,7 +26,7 @@ def main(argv: list[str]) -> int:
     """Dispatch ``peel bench <target> [options]``."""
     if not argv or argv[0] in ("-h", "--help"):
         lines = ["usage: peel bench <target> [--json] [options]", "", "targets:"]
-        lines += [f"  {name:<8} {text}" for name, (_, text) in TARGETS.items()]
+        lines += [f"  {name:<11} {text}" for name, (_, text) in TARGETS.items()]
         print("\n".join(lines))
         return 0 if argv else 2
     target, rest = argv[0], argv[1:]

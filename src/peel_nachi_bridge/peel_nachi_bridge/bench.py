@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import threading
 import time
@@ -58,6 +59,7 @@ def _summary(values_s: list[float]) -> dict[str, float]:
 
 
 def measure(tasks: int, speed: float) -> dict[str, object]:
+    load_before = os.getloadavg()
     faults = tuple(Fault("spike", t=SPIKE_T, task=k, f=22.0) for k in range(tasks))
     emu = ControllerEmulator(EmulatorOptions(port=0, speed=speed, faults=faults),
                              log=lambda text: None).start()
@@ -83,8 +85,10 @@ def measure(tasks: int, speed: float) -> dict[str, object]:
         "stop_delay_ms": _summary(bridge.stats.stop_delays_s),
         "round_trip_ms": _summary([e.data["since_sample_s"] for e in stops]),
         "same_sample": f"{same}/{len(stops)}",
-        "machine": f"{platform.machine()}, {platform.python_implementation()} "
-                   f"{platform.python_version()}",
+        "load_average_1_5_15": {"before": [round(x, 2) for x in load_before],
+                                "after": [round(x, 2) for x in os.getloadavg()]},
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, "
+                   f"{platform.python_implementation()} {platform.python_version()}",
         "at": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
 
