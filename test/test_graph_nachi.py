@@ -171,3 +171,28 @@ def test_bad_nachi_options_and_parameters_exit_2_before_anything_starts(
     (line,) = out.stderr.strip().splitlines()
     assert line.startswith("peel graph: error: ") and message in line, line
     assert not (tmp_path / "run").exists()  # nothing started
+
+
+def test_bench_nachi_graph_compares_both_bridges_on_one_seed(tmp_path: Path,
+                                                             ros_domain: str) -> None:
+    """``peel bench nachi-graph``: a simulator-bridge graph and a Nachi-bridge graph against the
+    emulator, same seed and parameters, side by side as JSON (one task each here)."""
+    params = tmp_path / "params.yaml"
+    params.write_text(OVERRIDE)
+    out = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "bench", "nachi-graph",
+                          "--tasks", "1", "--seed", "5", "--speed", "0.5", "--params",
+                          str(params), "--out", str(tmp_path / "cmp")],
+                         env=_env(), capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr
+    result = json.loads(out.stdout)
+    assert (result["benchmark"], result["seed"], result["tasks"]) == ("nachi-graph", 5, 1)
+    for bridge, run in (("simulator_bridge", "sim"), ("nachi_bridge", "nachi")):
+        (task,) = result[bridge]
+        summary = json.loads((tmp_path / "cmp" / run / "summary.json").read_text())
+        assert task["J"] == summary["results"][0]["J"] and task["model_version"] == 0
+        assert task["outcome"] in ("done", "safety_stop", "timeout")
+        assert result["mean_J"][bridge] == pytest.approx(task["J"], abs=1e-4)
+        assert result["model_versions"][bridge][:2] == [0, 1]
+    assert json.loads((tmp_path / "cmp" / "nachi" / "summary.json").read_text())["plant"] == \
+        "nachi"
+    assert len(result["load_average_1_5_15"]["before"]) == 3
