@@ -87,9 +87,12 @@ def load_param_file(path: str | os.PathLike[str], node_name: str) -> dict[str, A
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise PeelError(f"cannot read parameter file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise PeelError(f"parameter file {path} is not valid UTF-8 (byte 0x{exc.object[exc.start]:02x} "
+                        f"at offset {exc.start})") from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
