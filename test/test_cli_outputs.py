@@ -144,6 +144,15 @@ def test_output_dir_lifecycle(tmp_path) -> None:
     assert (tmp_path / "empty").is_dir() and not any((tmp_path / "empty").iterdir())
 
 
+def test_output_dir_relative_path(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    with OutputDir("runs/x", command="peel soak") as d:
+        assert (tmp_path / "runs" / "x" / RUN_MARKER).is_file() and str(d) == "runs/x"
+    with pytest.raises(RuntimeError), OutputDir("new/y", command="peel soak"):
+        raise RuntimeError("boom")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]
+
+
 def test_output_dir_never_touches_foreign_files(tmp_path) -> None:
     (tmp_path / "notes.txt").write_text("mine")
     for force in (False, True):

@@ -169,8 +169,8 @@ class OutputDir:
                 else:
                     child.unlink()
         top = _existing_ancestor(p)
-        if not p.exists():
-            self._created = p
+        if not p.exists():  # remember the topmost folder this run creates (absolute)
+            self._created = Path(os.path.abspath(p))
             while self._created.parent != top:
                 self._created = self._created.parent
         try:
@@ -191,7 +191,7 @@ class OutputDir:
             (p / RUN_MARKER).unlink(missing_ok=True)
             if self._created is None:
                 return False  # the folder existed before this run: leave it
-            d = p
+            d = Path(os.path.abspath(p))
             while True:
                 d.rmdir()
                 if d == self._created:
