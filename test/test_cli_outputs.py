@@ -1,5 +1,5 @@
 """The shared command-line helpers: argument types, the top-level handler, output locations,
-device names, dataset checks and the finite-output probe of a model."""
+device names and the dataset check."""
 
 from __future__ import annotations
 
@@ -10,9 +10,7 @@ import shutil
 import pytest
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from model_learner_node.devices import check_device, device_arg
-from model_learner_node.validation import check_finite_outputs
 from peel_msgs_py.cliargs import (
     ArgumentParser,
     UsageError,
@@ -198,15 +196,3 @@ def test_truncated_or_missing_shard_is_named(tmp_path) -> None:
     shutil.rmtree(ds / "test")
     with pytest.raises(PeelError, match="is missing"):
         check_dataset(ds)
-
-
-def test_finite_output_probe() -> None:
-    pred = load_checkpoint(shipped_checkpoint())
-    check_finite_outputs(pred)
-    check_finite_outputs(pred, rows=torch.randn(30, 4).abs().numpy())
-    with torch.no_grad():
-        for p in pred.parameters():
-            p.mul_(1e30)
-    assert all(bool(torch.isfinite(p).all()) for p in pred.parameters())  # weights finite
-    with pytest.raises(PeelError, match="non-finite forces"):
-        check_finite_outputs(pred)
