@@ -26,6 +26,14 @@ from peel_sim_node.config import load_sim_config
 from peel_sim_node.dataset import generate_dataset
 
 
+@pytest.fixture(autouse=True)
+def _torch_threads():
+    """In-process commands may set torch's thread count: restore it for the tests after."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def env(tmp_path_factory) -> dict[str, Path]:
     """A tiny complete dataset, a copy with a truncated test shard, a non-UTF-8 parameter
