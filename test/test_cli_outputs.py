@@ -153,10 +153,12 @@ def test_output_dir_relative_path(tmp_path, monkeypatch) -> None:
 
 def test_output_dir_never_touches_foreign_files(tmp_path) -> None:
     (tmp_path / "notes.txt").write_text("mine")
+    mtime = tmp_path.stat().st_mtime_ns
     for force in (False, True):
         with pytest.raises(PeelError, match="not empty and holds no peel run"):
             OutputDir(tmp_path, command="peel graph", force=force)
     assert (tmp_path / "notes.txt").read_text() == "mine"
+    assert tmp_path.stat().st_mtime_ns == mtime  # not even a probe was created in it
     (tmp_path / "notes.txt").unlink()
     (tmp_path / RUN_MARKER).write_text("{}")  # a run killed before it wrote anything
     OutputDir(tmp_path, command="peel graph")  # counts as empty

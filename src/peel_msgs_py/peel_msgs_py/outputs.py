@@ -78,10 +78,11 @@ def _existing_ancestor(path: Path) -> Path:
 
 
 def check_location(path: str | os.PathLike[str], what: str = "--out", *,
-                   file: bool = False) -> Path:
+                   file: bool = False, probe: bool = True) -> Path:
     """Refuse a path that cannot be created or written (module docstring); returns it.
 
     ``file=True``: ``path`` is a file to write, so its folder is what must be writable.
+    ``probe=False``: only the file system and folder checks, no probe directory.
     """
     path = Path(path)
     base = _existing_ancestor(path.parent if file else path)
@@ -91,6 +92,8 @@ def check_location(path: str | os.PathLike[str], what: str = "--out", *,
                         "interface, not storage)")
     if not base.is_dir():
         raise PeelError(f"{what} {path}: {base} is a file, not a folder")
+    if not probe:
+        return path
     try:
         probe = tempfile.mkdtemp(prefix=".peel-probe-", dir=base)
     except OSError as exc:
@@ -143,12 +146,14 @@ class OutputDir:
         self.check()
 
     def check(self) -> None:
-        """Refuse a location this run cannot use; nothing is written."""
+        """Refuse a location this run cannot use; nothing is left behind (the writability probe
+        runs only in a folder that is new, empty or an earlier peel run)."""
         p = self.path
         if p.exists() and not p.is_dir():
             raise PeelError(f"{self.what} {p} is an existing file, not a folder")
-        check_location(p, self.what)
+        check_location(p, self.what, probe=False)
         if not p.is_dir() or not any(c.name != RUN_MARKER for c in p.iterdir()):
+            check_location(p, self.what)
             return  # new, empty, or left by a run killed before it wrote anything
         self.earlier = read_marker(p)
         if self.earlier is None:
@@ -158,6 +163,7 @@ class OutputDir:
             when = self.earlier.get("created", "?")
             raise PeelError(f"{self.what} {p} holds an earlier '{self.earlier.get('command')}' "
                             f"run ({when}); choose another folder or add --force to replace it")
+        check_location(p, self.what)
 
     def create(self) -> Path:
         """Create the folder (clearing an earlier run when forced) and write the marker."""
