@@ -168,13 +168,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = replace(cfg, **changes)
     from .experiment import run_experiment
 
-    checkpoint = _checkpoint(args.checkpoint)
-    with out as out_dir:
-        results = run_experiment(
-            cfg, checkpoint=checkpoint, out=out_dir,
-            sim_overrides=args.sim_params, planner_overrides=args.planner_params,
-            learner_overrides=args.learner_params, command=command,
-            maml_changes={"first_order": True} if args.first_order else None)
+    results = run_experiment(
+        cfg, checkpoint=_checkpoint(args.checkpoint), out=out.create(),  # created after checks
+        sim_overrides=args.sim_params, planner_overrides=args.planner_params,
+        learner_overrides=args.learner_params, command=command,
+        maml_changes={"first_order": True} if args.first_order else None)
     print(json.dumps(_summary(results), indent=1))
     return 0
 
@@ -193,11 +191,9 @@ def _sweep(argv: list[str], command: str) -> int:
     cfg = replace(cfg, **changes)
     from .experiment import run_sweep
 
-    checkpoint = _checkpoint(args.checkpoint)
-    with out as out_dir:
-        sweep = run_sweep(cfg, checkpoint=checkpoint, out=out_dir,
-                          sim_overrides=args.sim_params, planner_overrides=args.planner_params,
-                          command=command)
+    sweep = run_sweep(cfg, checkpoint=_checkpoint(args.checkpoint), out=out.create(),
+                      sim_overrides=args.sim_params, planner_overrides=args.planner_params,
+                      command=command)
     print(json.dumps({"out": sweep["files"], "table2": sweep["table2"],
                       "timing": sweep["timing"]}, indent=1))
     return 0
