@@ -13,12 +13,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from geometry_msgs.msg import Point, Pose, PoseStamped
 from mcap.reader import make_reader
+from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from peel_msgs_py.bag import BagWriter, repair_bag
-from peel_msgs_py.runtime import msg as M
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 N = 120
@@ -31,8 +32,8 @@ def full_bag(tmp_path_factory) -> dict:
     with BagWriter(src, chunk_size=800) as bag:
         bag.add_topic("/peel/pose", "geometry_msgs/msg/PoseStamped")
         for i in range(N):
-            m = M.PoseStamped(pose=M.Pose(position=M.Point(x=float(i))))
-            bag.write("/peel/pose", M.serialize(m), 5000 + i)
+            m = PoseStamped(pose=Pose(position=Point(x=float(i))))
+            bag.write("/peel/pose", serialize_message(m), 5000 + i)
     with open(src / "full_0.mcap", "rb") as fh:
         chunks = sorted(make_reader(fh).get_summary().chunk_indexes,
                         key=lambda c: c.chunk_start_offset)

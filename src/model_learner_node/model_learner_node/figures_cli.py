@@ -67,12 +67,12 @@ def main(argv: list[str] | None = None) -> int:
     out = OutputDir(args.out, command="peel figures", force=args.force)
     from peel_sim_node.dataset import check_dataset, load_split
 
+    model_cfg = load_model_config(args.params_file)
+    train_cfg = load_train_config(args.params_file)
     check_dataset(args.data)  # a missing or truncated shard: refused before loading
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     scale = SCALES[args.scale]
-    model_cfg = load_model_config(args.params_file)
-    train_cfg = load_train_config(args.params_file)
     epochs = _given(args.epochs, scale["epochs"])
     lr = _given(args.lr, scale["lr"] or train_cfg.lr)
     patience = _given(args.patience, scale["patience"] or epochs)

@@ -81,14 +81,14 @@ def _split_bags(trajs: list, fraction: float, seed: int) -> tuple[list, list, st
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     check_output_files(output_paths(args.out), force=args.force)  # before any training
+    model_cfg = load_model_config(args.params_file)
+    train_cfg = load_train_config(args.params_file)
     if args.data is not None:
         from peel_sim_node.dataset import check_dataset
 
         check_dataset(args.data)  # a missing or truncated shard: refused before loading
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-    model_cfg = load_model_config(args.params_file)
-    train_cfg = load_train_config(args.params_file)
     changes = {k: v for k, v in (("epochs", args.epochs), ("seed", args.seed), ("lr", args.lr),
                                   ("batch_size", args.batch_size), ("patience", args.patience))
                if v is not None}
