@@ -84,7 +84,7 @@ def test_unknown_sections_and_names_are_refused(tmp_path) -> None:
 def test_not_utf8_file_is_one_line_error(tmp_path) -> None:
     path = tmp_path / "latin1.yaml"
     path.write_bytes("peel_sim_node:\n  ros__parameters:\n    x: 'Größe'\n".encode("latin-1"))
-    with pytest.raises(PeelError, match="not UTF-8"):
+    with pytest.raises(PeelError, match="not valid UTF-8"):
         load_param_file(path, "peel_sim_node")
 
 

@@ -10,7 +10,6 @@ Prints one JSON object keyed by architecture. Numbers depend on the machine and 
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import time
@@ -18,12 +17,14 @@ import time
 import numpy as np
 import torch
 
+from peel_msgs_py.cliargs import ArgumentParser, positive_int
+
 from .config import ARCHS, load_model_config, load_train_config
+from .devices import device_arg, resolve_device
 from .losses import total_loss
 from .predictor import ForcePredictor, fit_normalization
 from .replay import ReplayPool
 from .synthetic import synthetic_split
-from .train import resolve_device
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -86,17 +87,19 @@ def bench_arch(arch: str, *, train_steps: int, repeats: int, device: torch.devic
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="peel bench model", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="peel bench model", description=__doc__.split("\n\n")[0])
     p.add_argument("--json", action="store_true", help="print JSON only (the default output)")
     p.add_argument("--arch", nargs="+", choices=ARCHS, default=list(ARCHS))
-    p.add_argument("--train-steps", type=int, default=20, help="timed training batches per arch")
-    p.add_argument("--repeats", type=int, default=30, help="timed inference calls per batch size")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    p.add_argument("--device", default="cpu", help="cpu (default), cuda, or auto")
+    p.add_argument("--train-steps", type=positive_int, default=20,
+                   help="timed training batches per arch")
+    p.add_argument("--repeats", type=positive_int, default=30,
+                   help="timed inference calls per batch size")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--device", type=device_arg, default="cpu", help="cpu (default), cuda[:N], or auto")
     args = p.parse_args(argv)
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     dev = resolve_device(args.device)
-    result = {a: bench_arch(a, train_steps=max(1, args.train_steps),
-                            repeats=max(1, args.repeats), device=dev) for a in args.arch}
+    result = {a: bench_arch(a, train_steps=args.train_steps, repeats=args.repeats, device=dev)
+              for a in args.arch}
     print(json.dumps(result, indent=2))
     return 0

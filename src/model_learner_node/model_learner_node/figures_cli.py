@@ -20,17 +20,24 @@ learning curves run the full epoch budget so that the two losses are compared ov
 
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import torch
 
-from peel_msgs_py.errors import PeelError
+from peel_msgs_py.cliargs import (
+    ArgumentParser,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
+from peel_msgs_py.outputs import OutputDir
 
 from .checkpoint import jsonable
 from .config import load_model_config, load_train_config
+from .devices import device_arg
 from .figures import run_figures
 
 SCALES = {
@@ -40,42 +47,51 @@ SCALES = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="peel figures", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="peel figures", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, required=True, help="dataset written by 'peel dataset'")
     p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier 'peel figures' run in --out")
     p.add_argument("--scale", choices=sorted(SCALES), default="small")
-    p.add_argument("--seeds", type=int, nargs="+", help="training seeds")
-    p.add_argument("--epochs", type=int, help="epochs per run")
-    p.add_argument("--lr", type=float, help="Adam learning rate")
-    p.add_argument("--patience", type=int, help="early-stopping patience (default: the epochs)")
+    p.add_argument("--seeds", type=nonnegative_int, nargs="+", help="training seeds")
+    p.add_argument("--epochs", type=positive_int, help="epochs per run")
+    p.add_argument("--lr", type=positive_float, help="Adam learning rate")
+    p.add_argument("--patience", type=positive_int,
+                   help="early-stopping patience (default: the epochs)")
     p.add_argument("--params-file", type=str, help="ROS 2 parameter YAML overriding the config")
-    p.add_argument("--device", help="cpu, cuda or auto (default: per scale)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
+    p.add_argument("--device", type=device_arg, help="cpu, cuda[:N] or auto (default: per scale)")
+    p.add_argument("--threads", type=nonnegative_int, default=0,
+                   help="torch CPU threads (0 = default)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
+    out = OutputDir(args.out, command="peel figures", force=args.force)
+    from peel_sim_node.dataset import check_dataset, load_split
+
+    model_cfg = load_model_config(args.params_file)
+    train_cfg = load_train_config(args.params_file)
+    check_dataset(args.data)  # a missing or truncated shard: refused before loading
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     scale = SCALES[args.scale]
-    model_cfg = load_model_config(args.params_file)
-    train_cfg = load_train_config(args.params_file)
-    epochs = args.epochs or scale["epochs"]
-    if epochs < 1:
-        raise PeelError(f"--epochs must be >= 1, got {epochs}")
-    lr = args.lr or scale["lr"] or train_cfg.lr
-    patience = args.patience or scale["patience"] or epochs
+    epochs = _given(args.epochs, scale["epochs"])
+    lr = _given(args.lr, scale["lr"] or train_cfg.lr)
+    patience = _given(args.patience, scale["patience"] or epochs)
     train_cfg = replace(train_cfg, epochs=epochs, lr=lr, patience=patience)
     seeds = args.seeds if args.seeds else scale["seeds"]
-    from peel_sim_node.dataset import load_split
-
-    if not args.data.is_dir():
-        raise PeelError(f"--data {args.data} is not a directory")
     train, val, test = (load_split(args.data, s) for s in ("train", "val", "test"))
-    data = run_figures(train, val, test, args.out, model_cfg=model_cfg, train_cfg=train_cfg,
-                       seeds=seeds, progress=not args.quiet, device=args.device or scale["device"],
-                       settings={"scale": args.scale, "data": str(args.data)})
+    with out as out_dir:
+        data = run_figures(train, val, test, out_dir, model_cfg=model_cfg, train_cfg=train_cfg,
+                           seeds=seeds, progress=not args.quiet,
+                           device=args.device or scale["device"],
+                           settings={"scale": args.scale, "data": str(args.data)})
     summary = {"fig10": {a: {k: v for k, v in d.items() if k in ("test_rmse", "test_corr")}
                          for a, d in data["fig10"].items()},
                "ours_beats_baselines": data["ours_beats_baselines"],
                "figures": str(args.out)}
     print(json.dumps(jsonable(summary), indent=2))
     return 0
+
+
+def _given(value: Any, default: Any) -> Any:
+    """An option's value when it was given (0 included), else the default."""
+    return default if value is None else value

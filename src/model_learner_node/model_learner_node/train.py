@@ -31,6 +31,7 @@ from peel_msgs_py.trajectory import Trajectory
 
 from .checkpoint import atomic_write_json, checkpoint_paths, save_checkpoint
 from .config import ModelConfig, TrainConfig
+from .devices import resolve_device
 from .losses import total_loss
 from .metrics import evaluate_windows, persistence_metrics
 from .predictor import ForcePredictor, fit_normalization
@@ -51,15 +52,6 @@ class TrainResult:
     @property
     def val_rmse_curve(self) -> list[float]:
         return [h["val_rmse"] for h in self.history]
-
-
-def resolve_device(device: str | None = "cpu") -> torch.device:
-    """``cpu`` (default), ``cuda``, or ``auto`` = CUDA when present."""
-    if device in (None, "auto"):
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise PeelError(f"device '{device}' requested but CUDA is not available")
-    return torch.device(device)
 
 
 def dataset_hash(*splits: Sequence[Trajectory]) -> str:
@@ -220,7 +212,13 @@ def train_and_save(
     }
     result.predictor.cpu()
     st_path = save_checkpoint(out, result.predictor, meta)
-    stem = checkpoint_paths(out)[0].with_suffix("")
-    atomic_write_json(stem.with_name(stem.name + ".metrics.json"),
+    atomic_write_json(output_paths(out)[2],
                       {**metrics, "history": result.history, "checkpoint": st_path.name})
     return result, metrics
+
+
+def output_paths(out: str | Path) -> list[Path]:
+    """What :func:`train_and_save` writes: ``<name>.safetensors``, ``.json``, ``.metrics.json``."""
+    st_path, js_path = checkpoint_paths(out)
+    stem = st_path.with_suffix("")
+    return [st_path, js_path, stem.with_name(stem.name + ".metrics.json")]

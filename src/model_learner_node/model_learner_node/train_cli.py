@@ -17,7 +17,6 @@ channel, Eq. 39-40, and the learning curve) and prints the metrics as JSON on st
 
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -25,33 +24,44 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from peel_msgs_py.cliargs import (
+    ArgumentParser,
+    float_arg,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.outputs import check_output_files
 
 from .checkpoint import jsonable, load_checkpoint
 from .config import ARCHS, load_model_config, load_train_config
-from .train import train_and_save
+from .devices import device_arg
+from .train import output_paths, train_and_save
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="peel train", description=__doc__.split("\n\n")[0])
+def build_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="peel train", description=__doc__.split("\n\n")[0])
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", type=Path, help="dataset directory written by 'peel dataset'")
     src.add_argument("--from-bags", nargs="+", type=Path, metavar="BAG",
                      help="recorded rosbag2/MCAP bags with /peel/trajectory messages")
     p.add_argument("--out", type=Path, required=True, help="checkpoint path (name or .safetensors)")
+    p.add_argument("--force", action="store_true", help="replace an existing checkpoint at --out")
     p.add_argument("--arch", choices=ARCHS, default=None, help="architecture (default: config)")
     p.add_argument("--init", type=Path, help="checkpoint to start from (required with --from-bags)")
     p.add_argument("--no-pene", action="store_true", help="train with L_MSE only (kappa = 0)")
-    p.add_argument("--epochs", type=int, help="maximum epochs (default: config train.epochs)")
-    p.add_argument("--seed", type=int, help="seed (default: config train.seed)")
-    p.add_argument("--lr", type=float, help="Adam learning rate (default: config, paper 1e-4)")
-    p.add_argument("--batch-size", type=int, help="slices per batch (default: config)")
-    p.add_argument("--patience", type=int, help="early-stopping patience (default: config)")
-    p.add_argument("--val-fraction", type=float, default=0.2,
+    p.add_argument("--epochs", type=positive_int, help="maximum epochs (default: config train.epochs)")
+    p.add_argument("--seed", type=nonnegative_int, help="seed (default: config train.seed)")
+    p.add_argument("--lr", type=positive_float, help="Adam learning rate (default: config, paper 1e-4)")
+    p.add_argument("--batch-size", type=positive_int, help="slices per batch (default: config)")
+    p.add_argument("--patience", type=positive_int, help="early-stopping patience (default: config)")
+    p.add_argument("--val-fraction", type=float_arg(0.0, 1.0, min_open=True), default=0.2,
                    help="--from-bags: share of trajectories held out for validation (0.2)")
     p.add_argument("--params-file", type=str, help="ROS 2 parameter YAML overriding the config")
-    p.add_argument("--device", default="cpu", help="cpu (default), cuda, or auto")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch default)")
+    p.add_argument("--device", type=device_arg, default="cpu", help="cpu (default), cuda[:N], or auto")
+    p.add_argument("--threads", type=nonnegative_int, default=0,
+                   help="torch CPU threads (0 = torch default)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -70,16 +80,18 @@ def _split_bags(trajs: list, fraction: float, seed: int) -> tuple[list, list, st
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    check_output_files(output_paths(args.out), force=args.force)  # before any training
     model_cfg = load_model_config(args.params_file)
     train_cfg = load_train_config(args.params_file)
+    if args.data is not None:
+        from peel_sim_node.dataset import check_dataset
+
+        check_dataset(args.data)  # a missing or truncated shard: refused before loading
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     changes = {k: v for k, v in (("epochs", args.epochs), ("seed", args.seed), ("lr", args.lr),
                                   ("batch_size", args.batch_size), ("patience", args.patience))
                if v is not None}
-    for k, v in changes.items():
-        if (k == "lr" and not v > 0) or (k != "lr" and v < (0 if k == "seed" else 1)):
-            raise PeelError(f"--{k.replace('_', '-')} = {v} is out of range")
     train_cfg = replace(train_cfg, **changes)
     init = load_checkpoint(args.init) if args.init else None
     if init is not None:
@@ -106,8 +118,6 @@ def main(argv: list[str] | None = None) -> int:
     else:
         from peel_sim_node.dataset import load_split
 
-        if not args.data.is_dir():
-            raise PeelError(f"--data {args.data} is not a directory")
         train, val, test = (load_split(args.data, s) for s in ("train", "val", "test"))
         label = "test"
         extra["data"] = str(args.data)

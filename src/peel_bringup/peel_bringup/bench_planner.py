@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node.config import PlannerConfig, load_planner_config
@@ -358,24 +359,24 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     """``peel bench planner [--json] [--quick] [--tasks N] [--repeats N] [--threads N]``."""
-    ap = argparse.ArgumentParser(prog="peel bench planner", description=__doc__.split("\n")[0])
+    ap = ArgumentParser(prog="peel bench planner", description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object (default)")
     ap.add_argument("--quick", action="store_true",
                     help="small version: cases (50,5) and (100,5), 2 tasks, 20 timing calls")
-    ap.add_argument("--tasks", type=int, default=None, help="simulator tasks per case (10)")
-    ap.add_argument("--repeats", type=int, default=None, help="timed calls per case (100)")
-    ap.add_argument("--threads", type=int, default=1,
+    ap.add_argument("--tasks", type=positive_int, default=None, help="simulator tasks per case (10)")
+    ap.add_argument("--repeats", type=positive_int, default=None, help="timed calls per case (100)")
+    ap.add_argument("--threads", type=positive_int, default=1,
                     help="torch CPU threads (1: on a shared 2-core machine 2 threads contend)")
     ap.add_argument("--progress", action="store_true", help="tqdm progress bar on stderr")
     ap.add_argument("--cost-study", action="store_true",
                     help="instead of the benchmark: J of peel variants vs pytorch_mppi over "
                          "--tasks x --seeds at (--study-n, --study-h)")
-    ap.add_argument("--seeds", type=int, default=3,
+    ap.add_argument("--seeds", type=positive_int, default=3,
                     help="planner noise seeds per task (both implementations, paired; 3)")
-    ap.add_argument("--first-task", type=int, default=0,
+    ap.add_argument("--first-task", type=nonnegative_int, default=0,
                     help="--cost-study: simulator task seeds first-task .. first-task+tasks-1")
-    ap.add_argument("--study-n", type=int, default=50, help="N for --cost-study")
-    ap.add_argument("--study-h", type=int, default=5, help="H for --cost-study")
+    ap.add_argument("--study-n", type=positive_int, default=50, help="N for --cost-study")
+    ap.add_argument("--study-h", type=positive_int, default=5, help="H for --cost-study")
     ap.add_argument("--variants", default="",
                     help="comma-separated --cost-study variants (default: all)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
@@ -389,12 +390,9 @@ def main(argv: list[str] | None = None) -> int:
         args.seeds = 1
     if args.repeats is None:
         args.repeats = 20 if args.quick else 100
-    for name in ("tasks", "repeats", "threads", "seeds", "study_n", "study_h"):
-        if getattr(args, name) < 1:
-            raise PeelError(f"--{name.replace('_', '-')} must be at least 1")
     print(json.dumps(cost_study(args) if args.cost_study else run(args), indent=2))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main("peel bench planner", main))

@@ -3,7 +3,9 @@
 Each subcommand lives in the package that owns the capability and is imported lazily, so
 ``peel --help`` is fast and a missing optional dependency only affects its own subcommand. Every
 subcommand is a ``main(argv: list[str]) -> int`` function. Bad input raises
-:class:`~peel_msgs_py.errors.PeelError`; this wrapper prints it as one line and exits 2.
+:class:`~peel_msgs_py.errors.PeelError` (argument parsers are
+:class:`peel_msgs_py.cliargs.ArgumentParser`, whose usage errors are PeelErrors too); the one
+top-level handler, :func:`peel_msgs_py.cliargs.run_main`, prints it as one line and exits 2.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import importlib
 import os
 import sys
 
-from peel_msgs_py.errors import PeelError
+from peel_msgs_py.cliargs import run_main
 
 #: name -> ("module:function", one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -26,6 +28,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "record": ("peel_msgs_py.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_bridge.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
+    "soak": ("peel_bringup.soak:main", "many consecutive peels through the graph: safety stops, "
+             "every node's memory"),
 }
 
 
@@ -58,17 +62,12 @@ def main(argv: list[str] | None = None) -> int:
     if name not in SUBCOMMANDS:
         print(f"peel: error: unknown command '{name}'\n\n{_usage()}", file=sys.stderr)
         return 2
-    target, _ = SUBCOMMANDS[name]
-    module_name, func_name = target.split(":")
-    try:
-        func = getattr(importlib.import_module(module_name), func_name)
-        return int(func(rest) or 0)
-    except PeelError as exc:
-        print(f"peel {name}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"peel {name}: interrupted", file=sys.stderr)
-        return 130
+    module_name, func_name = SUBCOMMANDS[name][0].split(":")
+
+    def run(args: list[str]) -> int:
+        return getattr(importlib.import_module(module_name), func_name)(args)
+
+    return run_main(f"peel {name}", run, rest)
 
 
 if __name__ == "__main__":

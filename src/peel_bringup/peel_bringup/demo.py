@@ -1,6 +1,6 @@
 """``peel demo``: the main job. A few tasks through the node graph on the plant, with a bag.
 
-    peel demo [--tasks 3] [--out DIR] [--params FILE] [--seed S] [--plant plant|sim]
+    peel demo [--tasks 3] [--out DIR [--force]] [--params FILE] [--seed S] [--plant plant|sim]
 
 Runs ``peel graph --plant plant --tasks 3 --record OUT/bag`` with the shipped checkpoint (the
 planner starts from :func:`model_learner_node.checkpoint.shipped_checkpoint`; the learner's
@@ -12,7 +12,6 @@ v and command u) and the contact forces F_RX, F_RZ against the task time: ``OUT/
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -22,16 +21,19 @@ from typing import Any
 import numpy as np
 
 from peel_msgs_py.atomic import atomic_write, atomic_write_text
+from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.outputs import OutputDir
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="peel demo", description=__doc__.split("\n\n")[0])
-    p.add_argument("--tasks", type=int, default=3, metavar="K", help="tasks (default 3)")
+def _parser() -> ArgumentParser:
+    p = ArgumentParser(prog="peel demo", description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", type=positive_int, default=3, metavar="K", help="tasks (default 3)")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="run directory (default runs/demo/<time>)")
+    p.add_argument("--force", action="store_true", help="replace an earlier run in --out")
     p.add_argument("--params", metavar="FILE", default=None, help="parameter override file")
-    p.add_argument("--seed", type=int, default=None, help="seed of the task sequence")
+    p.add_argument("--seed", type=nonnegative_int, default=None, help="seed of the task sequence")
     p.add_argument("--plant", choices=("sim", "plant"), default="plant",
                    help="where the tasks run (default: the plant)")
     return p
@@ -150,11 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     from . import graph
 
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
-    if args.tasks < 1:
-        raise PeelError(f"--tasks must be >= 1, got {args.tasks}")
     run_dir = Path(args.out) if args.out else Path("runs/demo") / time.strftime("%Y%m%d-%H%M%S")
-    if (run_dir / "bag").exists():
-        raise PeelError(f"{run_dir / 'bag'} already exists; choose another --out")
+    OutputDir(run_dir, command="peel demo", force=args.force)  # refused here, before the graph
     bag = run_dir / "bag"
     print(f"peel demo: {args.tasks} tasks on the {args.plant} through the node graph "
           f"(shipped checkpoint, online learning); this takes a few minutes", flush=True)
@@ -162,8 +161,10 @@ def main(argv: list[str] | None = None) -> int:
     gargs = graph._parser().parse_args(
         ["--plant", args.plant, "--tasks", str(args.tasks), "--record", str(bag),
          "--out", str(run_dir)]
+        + (["--force"] if args.force else [])
         + (["--params", args.params] if args.params else [])
         + (["--seed", str(args.seed)] if args.seed is not None else []))
+    gargs.command = "peel demo"
     status = graph.run_graph(gargs)
     wall = time.monotonic() - t0
     if not bag.exists():
@@ -188,4 +189,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main("peel demo", main))

@@ -15,54 +15,52 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from peel_msgs_py.cliargs import (
+    ArgumentParser,
+    float_list,
+    int_list,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    run_main,
+)
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.outputs import OutputDir
 
 from .experiment import ExperimentConfig, check_methods, load_experiment_config
 
-
-def _ints(text: str) -> tuple[int, ...]:
-    try:
-        vals = tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not vals or any(v < 0 for v in vals):
-        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
-    return vals
+_ints = int_list(0)  # comma-separated seeds / N / H
+_floats = float_list(0.0, min_open=True)  # comma-separated lambdas: finite and > 0
+_positive = positive_int
 
 
-def _floats(text: str) -> tuple[float, ...]:
-    try:
-        vals = tuple(float(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-    if not vals or any(not v > 0 for v in vals):
-        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
-    return vals
-
-
-def _positive(text: str) -> int:
-    try:
-        val = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if val < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
-    return val
-
-
-def _common(p: argparse.ArgumentParser) -> None:
+def _common(p: ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier run in --out (never a folder peel did not write)")
     p.add_argument("--workers", type=_positive, help="worker processes (results do not "
                    "depend on it; default from config, 1)")
     p.add_argument("--n-samples", type=_positive, help="MPPI N (default 50)")
     p.add_argument("--horizon", type=_positive, help="MPPI H (default 5)")
-    p.add_argument("--lambda", dest="lam", type=float, help="MPPI lambda (default 0.1)")
+    p.add_argument("--lambda", dest="lam", type=positive_float, help="MPPI lambda (default 0.1)")
     p.add_argument("--params-file", help="override file for config/peel_bringup.yaml")
     p.add_argument("--sim-params", help="override file for config/peel_sim_node.yaml")
     p.add_argument("--planner-params", help="override file for config/peel_planner_node.yaml")
 
 
+def _check_param_files(args: argparse.Namespace) -> None:
+    """Read every override file now: a missing, non-UTF-8 or malformed one is refused before
+    any peel runs (the workers read them again)."""
+    from peel_msgs_py.params import load_param_file
+
+    for attr, node in (("sim_params", "peel_sim_node"), ("planner_params", "peel_planner_node"),
+                       ("learner_params", "model_learner_node")):
+        if getattr(args, attr, None):
+            load_param_file(getattr(args, attr), node)
+
+
 def _base_cfg(args: argparse.Namespace) -> ExperimentConfig:
+    _check_param_files(args)
     cfg = load_experiment_config(args.params_file)
     changes: dict[str, Any] = {}
     if args.workers is not None:
@@ -78,8 +76,8 @@ def _base_cfg(args: argparse.Namespace) -> ExperimentConfig:
     return replace(cfg, **changes)
 
 
-def experiment_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def experiment_parser() -> ArgumentParser:
+    p = ArgumentParser(
         prog="peel experiment",
         description="Consecutive peels on the plant per method, from one pretrained model "
                     "(paper 4.4): results.json, Fig. 11, Table 1, Fig. 12, report.md. "
@@ -87,7 +85,7 @@ def experiment_parser() -> argparse.ArgumentParser:
     p.add_argument("--tasks", type=_positive, help="peels per method (default 20)")
     p.add_argument("--methods", help="comma-separated: ol-mppi,baseline1,baseline2")
     seeds = p.add_mutually_exclusive_group()
-    seeds.add_argument("--seed", type=int, help="one experiment seed")
+    seeds.add_argument("--seed", type=nonnegative_int, help="one experiment seed")
     seeds.add_argument("--seeds", type=_ints, help="several seeds, e.g. 0,1,2 (aggregated)")
     p.add_argument("--checkpoint", help="pretrained model (default: the shipped checkpoint)")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle")
@@ -100,8 +98,8 @@ def experiment_parser() -> argparse.ArgumentParser:
     return p
 
 
-def sweep_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def sweep_parser() -> ArgumentParser:
+    p = ArgumentParser(
         prog="peel experiment sweep",
         description="Table 2 (4.5): N, H and lambda one factor at a time around the defaults, "
                     "one plant peel per value and seed with a fixed model.")
@@ -148,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "sweep":
         return _sweep(argv[1:], command)
     args = experiment_parser().parse_args(argv)
+    out = OutputDir(args.out, command="peel experiment", force=args.force)
     cfg = _base_cfg(args)
     changes: dict[str, Any] = {}
     if args.tasks is not None:
@@ -170,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     from .experiment import run_experiment
 
     results = run_experiment(
-        cfg, checkpoint=_checkpoint(args.checkpoint), out=args.out,
+        cfg, checkpoint=_checkpoint(args.checkpoint), out=out.create(),  # created after checks
         sim_overrides=args.sim_params, planner_overrides=args.planner_params,
         learner_overrides=args.learner_params, command=command,
         maml_changes={"first_order": True} if args.first_order else None)
@@ -180,6 +179,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _sweep(argv: list[str], command: str) -> int:
     args = sweep_parser().parse_args(argv)
+    out = OutputDir(args.out, command="peel experiment sweep", force=args.force)
     cfg = _base_cfg(args)
     changes: dict[str, Any] = {}
     for attr, key in (("seeds", "sweep_seeds"), ("n_values", "sweep_n"), ("h_values", "sweep_h"),
@@ -191,7 +191,7 @@ def _sweep(argv: list[str], command: str) -> int:
     cfg = replace(cfg, **changes)
     from .experiment import run_sweep
 
-    sweep = run_sweep(cfg, checkpoint=_checkpoint(args.checkpoint), out=args.out,
+    sweep = run_sweep(cfg, checkpoint=_checkpoint(args.checkpoint), out=out.create(),
                       sim_overrides=args.sim_params, planner_overrides=args.planner_params,
                       command=command)
     print(json.dumps({"out": sweep["files"], "table2": sweep["table2"],
@@ -200,4 +200,4 @@ def _sweep(argv: list[str], command: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main("peel experiment", main))

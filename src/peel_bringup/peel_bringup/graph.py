@@ -1,7 +1,8 @@
 """``peel graph``: run the ROS 2 node graph as separate OS processes (docs/graph.md).
 
     peel graph [--plant sim|plant|nachi] [--tasks K] [--record BAG] [--params FILE] [--seed S]
-               [--nachi-host HOST] [--nachi-port PORT] [--out DIR] [--keep-going] [--verbose]
+               [--nachi-host HOST] [--nachi-port PORT] [--out DIR [--force]] [--keep-going]
+               [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
 ``peel record``, with ``--record``) as child processes on rclpy (``ROS_DOMAIN_ID`` is passed on;
@@ -40,7 +41,9 @@ from typing import Any
 
 from peel_msgs_py import discovery
 from peel_msgs_py.atomic import atomic_write_text
+from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.outputs import OutputDir, check_location, check_new_path
 from peel_msgs_py.params import config_dir, default_param_file, load_node_params, validate
 
 from .parameters import GRAPH_SPECS
@@ -223,26 +226,29 @@ class _Interrupt:
             signal.signal(sig, old)
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="peel graph", description=__doc__.split("\n\n")[0])
+def _parser() -> ArgumentParser:
+    p = ArgumentParser(prog="peel graph", description=__doc__.split("\n\n")[0])
     p.add_argument("--plant", choices=("sim", "plant", "nachi"), default=None,
                    help="run the tasks on the simulator, the plant or the Nachi robot "
                         "controller (default: graph.plant)")
     p.add_argument("--nachi-host", default=None, metavar="HOST",
                    help="controller address for --plant nachi (default: link.host of "
                         "config/peel_nachi_bridge.yaml)")
+    # range checked as the bridge's parameter link.port (one message, naming it)
     p.add_argument("--nachi-port", type=int, default=None, metavar="PORT",
                    help="controller TCP port for --plant nachi (default: link.port)")
-    p.add_argument("--tasks", type=int, default=None, metavar="K",
+    p.add_argument("--tasks", type=positive_int, default=None, metavar="K",
                    help="consecutive tasks, then stop (default: graph.tasks)")
     p.add_argument("--record", metavar="BAG", default=None,
                    help="record every /peel topic and /clock to this MCAP bag directory")
     p.add_argument("--params", metavar="FILE", default=None,
                    help="ROS 2 parameter file applied on top of config/ (any node's section)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the task sequence")
+    p.add_argument("--seed", type=nonnegative_int, default=None, help="seed of the task sequence")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="run directory for models, logs, summary.json "
                         "(default: graph.out_dir/<time>)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier run in --out (never a folder peel did not write)")
     p.add_argument("--keep-going", action="store_true",
                    help="survive the death of the learner or the recorder (exit status still 1)")
     p.add_argument("--verbose", action="store_true", help="node output on the terminal")
@@ -299,9 +305,11 @@ def resolve(args: argparse.Namespace) -> Run:
         raise PeelError(f"--seed must be >= 0, got {seed}")
     run_dir = Path(args.out) if args.out else \
         Path(gp["graph.out_dir"]) / time.strftime("%Y%m%d-%H%M%S")
+    out = OutputDir(run_dir, command=getattr(args, "command", "peel graph"), force=args.force)
     bag = Path(args.record) if args.record else None
-    if bag is not None and bag.exists():
-        raise PeelError(f"--record: {bag} already exists")
+    if bag is not None:  # a bag inside an earlier run that --force replaces may exist now
+        replaced = out.earlier is not None and bag.resolve().is_relative_to(run_dir.resolve())
+        (check_location if replaced else check_new_path)(bag, "--record")
     plant = args.plant or gp["graph.plant"]
     link = {key: value for key, value in (("link.host", args.nachi_host),
                                           ("link.port", args.nachi_port)) if value is not None}
@@ -309,6 +317,7 @@ def resolve(args: argparse.Namespace) -> Run:
         raise PeelError("--nachi-host / --nachi-port need --plant nachi")
     run = Run(override, gp, tasks, plant, seed, run_dir, bag, link)
     check_node_params(override, run.settings())
+    out.create()  # every check above passed: nothing is written before this
     return run
 
 
@@ -489,4 +498,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main("peel graph", main))

@@ -19,9 +19,10 @@ chunk: at most ``flush_interval_s`` seconds (default 1 s) or ``chunk_size`` byte
 chunk flushes (at most once per ``metadata_interval_s``) and at close.
 
 A file without its summary and footer cannot be opened by ``rosbags`` (it checks the end magic);
-:func:`repair_bag` (``peel record --repair BAG``) reads the complete chunks with ``mcap``'s
-stream reader (CRC-checked), writes a complete file beside it and atomically replaces the
-original, which it keeps as ``NAME_0.mcap.orig``; then it rewrites ``metadata.yaml``.
+:func:`repair_bag` (``peel record --repair BAG``, :mod:`peel_msgs_py.bagrepair`) keeps every
+chunk whose CRC holds, drops and reports the others, writes a complete file beside it and
+atomically replaces the original, which it keeps as ``NAME_0.mcap.orig``; then it rewrites
+``metadata.yaml``.
 """
 
 from __future__ import annotations
@@ -32,15 +33,11 @@ import struct
 import threading
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
-from mcap.records import Channel as McapChannel
-from mcap.records import Footer, Message
-from mcap.records import Schema as McapSchema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from .atomic import atomic_write_text
@@ -495,119 +492,8 @@ def mcap_is_complete(path: Path) -> bool:
     return tail[-8:] == _MAGIC and tail[0] == 0x02 and struct.unpack("<Q", tail[1:9])[0] == 20
 
 
-@dataclass
-class RepairResult:
-    """What :func:`repair_bag` did."""
+def repair_bag(path: str | os.PathLike[str]) -> Any:
+    """Make a damaged bag readable again: :func:`peel_msgs_py.bagrepair.repair_bag`."""
+    from .bagrepair import repair_bag as repair
 
-    bag: Path
-    repaired: bool
-    messages: int = 0
-    topics: dict[str, int] = field(default_factory=dict)
-    original: Path | None = None
-    bytes_dropped: int = 0
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "bag": str(self.bag),
-            "repaired": self.repaired,
-            "messages": self.messages,
-            "topics": self.topics,
-            "original": str(self.original) if self.original else None,
-            "bytes_dropped": self.bytes_dropped,
-        }
-
-
-def repair_bag(path: str | os.PathLike[str]) -> RepairResult:
-    """Make a bag cut short (recorder killed) readable again, keeping every complete chunk.
-
-    Reads the records of the truncated MCAP in order with ``mcap``'s stream reader (chunk CRCs
-    checked) until the first incomplete or corrupt record, writes them to a complete MCAP file
-    (summary, indexes, footer) beside the original, keeps the original as ``*.mcap.orig`` (a hard
-    link, or a copy) and atomically replaces the MCAP; then rewrites ``metadata.yaml``. A bag
-    that is already complete is left untouched (``repaired=False``).
-    """
-    bag = Path(path)
-    if not bag.is_dir():
-        raise PeelError(f"bag {bag} is not a directory")
-    src = mcap_path(bag)
-    if mcap_is_complete(src):
-        return RepairResult(bag, repaired=False)
-    orig = src.with_name(src.name + ".orig")
-    if orig.exists():
-        raise PeelError(f"cannot repair bag {bag}: {orig} already exists")
-
-    schemas: dict[int, McapSchema] = {}
-    channels: dict[int, McapChannel] = {}
-    messages: list[Message] = []
-    with open(src, "rb") as fh:
-        reader = StreamReader(fh, validate_crcs=True, record_size_limit=2**31)
-        good_end = 0
-        try:
-            for rec in reader.records:
-                if isinstance(rec, McapSchema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, McapChannel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    messages.append(rec)
-                elif isinstance(rec, Footer):
-                    break
-                good_end = fh.tell()
-        except Exception:  # truncated or corrupt tail: keep what came before it
-            pass
-        total = os.fstat(fh.fileno()).st_size
-    if not channels and not messages:
-        raise PeelError(f"cannot repair bag {bag}: {src.name} holds no complete chunk")
-
-    tmp = src.with_name(f".{src.name}.repair")
-    with contextlib.suppress(FileNotFoundError):
-        tmp.unlink()
-    out = _DirectFile(tmp)
-    writer = Writer(out, chunk_size=DEFAULT_CHUNK_SIZE * 4,  # type: ignore[arg-type]
-                    compression=CompressionType.LZ4)
-    writer.start(profile="ros2", library=_LIBRARY + " repair")
-    schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
-                  for sid, s in sorted(schemas.items())}
-    channel_ids = {
-        cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
-                                     dict(c.metadata))
-        for cid, c in sorted(channels.items())
-    }
-    counts: dict[int, int] = dict.fromkeys(channels, 0)
-    span = _Span()
-    for m in messages:
-        if m.channel_id not in channel_ids:
-            continue
-        writer.add_message(channel_id=channel_ids[m.channel_id], log_time=m.log_time,
-                           data=m.data, publish_time=m.publish_time, sequence=m.sequence)
-        counts[m.channel_id] += 1
-        span.add(m.log_time)
-
-    rows = []
-    for cid, ch in sorted(channels.items()):
-        schema = schemas.get(ch.schema_id)
-        qos_text = ch.metadata.get("offered_qos_profiles", "")
-        qos = yaml.safe_load(qos_text) if qos_text else []
-        rows.append((ch.topic, schema.name if schema else "", qos or [],
-                     ch.metadata.get("topic_type_hash", ""), counts[cid]))
-    doc = metadata_document(src.name, rows, span.start, span.end, {"repaired_from": orig.name})
-    writer.add_metadata(
-        "rosbag2", {"serialized_metadata": _dump_metadata(doc["rosbag2_bagfile_information"])}
-    )
-    writer.finish()
-    out.fsync()
-    out.close()
-
-    try:
-        os.link(src, orig)
-    except OSError:
-        import shutil
-
-        shutil.copy2(src, orig)
-    os.replace(tmp, src)
-    atomic_write_text(bag / "metadata.yaml", _dump_metadata(doc))
-    return RepairResult(
-        bag, repaired=True, messages=span.count,
-        topics={ch.topic: counts[cid] for cid, ch in sorted(channels.items())},
-        original=orig, bytes_dropped=max(0, total - good_end),
-    )
+    return repair(path)

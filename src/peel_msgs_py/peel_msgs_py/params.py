@@ -154,11 +154,12 @@ def load_param_file(path: str | os.PathLike[str], node_name: str) -> dict[str, A
 
 def _read_yaml(path: Path) -> Mapping[str, Any]:
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise PeelError(f"cannot read parameter file {path}: {exc.strerror}") from None
     except UnicodeDecodeError as exc:
-        raise PeelError(f"parameter file {path} is not UTF-8 text (byte {exc.start})") from None
+        raise PeelError(f"parameter file {path} is not valid UTF-8 (byte 0x{exc.object[exc.start]:02x} "
+                        f"at offset {exc.start})") from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -6,25 +6,25 @@
 
 Records until ``--duration`` seconds (wall clock) have passed, or until SIGINT / SIGTERM; then
 closes the bag properly and prints a JSON summary on stdout. A recorder killed with SIGKILL (or
-a power cut) leaves a bag without its summary: ``--repair`` turns it into a complete bag holding
-every complete chunk (see :mod:`peel_msgs_py.bag` for what is lost).
+a power cut) leaves a bag without its summary, a bad disk block a chunk whose CRC fails:
+``--repair`` turns either into a complete bag holding every chunk whose CRC holds, reports the
+dropped ones and counts the messages kept (:mod:`peel_msgs_py.bagrepair`).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import sys
 import time
 
 from . import bag as bagmod
-from .errors import PeelError
+from .cliargs import ArgumentParser, positive_float, positive_int, run_main
 from .topics import RECORDED_TOPICS, topic
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def _parser() -> ArgumentParser:
+    p = ArgumentParser(
         prog="peel record",
         description="Record the /peel topics and /clock to an MCAP bag (rosbag2 layout).",
     )
@@ -32,13 +32,13 @@ def _parser() -> argparse.ArgumentParser:
     mode.add_argument("--out", metavar="BAG", help="bag directory to create (must not exist)")
     mode.add_argument("--repair", metavar="BAG",
                       help="make a bag cut short readable again, keeping its complete chunks")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="stop after S seconds of wall-clock time (default: until SIGINT/SIGTERM)")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help=f"topics to record (default: all of {', '.join(RECORDED_TOPICS)})")
-    p.add_argument("--chunk-size", type=int, default=bagmod.DEFAULT_CHUNK_SIZE, metavar="BYTES",
+    p.add_argument("--chunk-size", type=positive_int, default=bagmod.DEFAULT_CHUNK_SIZE, metavar="BYTES",
                    help="flush a chunk when it holds this many bytes (default %(default)s)")
-    p.add_argument("--flush-interval", type=float, default=bagmod.DEFAULT_FLUSH_INTERVAL_S,
+    p.add_argument("--flush-interval", type=positive_float, default=bagmod.DEFAULT_FLUSH_INTERVAL_S,
                    metavar="S", help="flush a chunk when it is this old (default %(default)s s)")
     p.add_argument("--compression", choices=sorted(bagmod.COMPRESSIONS), default="lz4",
                    help="chunk compression (default %(default)s)")
@@ -70,10 +70,12 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
     if args.repair:
         result = bagmod.repair_bag(args.repair)
+        for d in result.chunks_dropped:
+            lost = "unknown" if d.messages is None else d.messages
+            print(f"peel record: warning: dropped the chunk at byte {d.offset} ({d.reason}); "
+                  f"messages lost: {lost}", file=sys.stderr)
         print(json.dumps(result.as_dict(), sort_keys=True))
         return 0
-    if args.duration is not None and not args.duration > 0:
-        raise PeelError(f"--duration must be > 0 s, got {args.duration}")
     names = list(dict.fromkeys(args.topics or RECORDED_TOPICS))
     for name in names:
         topic(name)  # unknown topic -> PeelError naming it
@@ -104,11 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(argv: list[str] | None = None) -> int:
     """``main`` with bad input reported as one line and exit status 2 (``python -m`` use)."""
-    try:
-        return main(argv)
-    except PeelError as exc:
-        print(f"peel record: error: {exc}", file=sys.stderr)
-        return 2
+    return run_main("peel record", main, argv)
 
 
 if __name__ == "__main__":

@@ -22,12 +22,13 @@ the spread of the per-trajectory ratios (min / median / max).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import time
 
 import numpy as np
+
+from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int
 
 from ._pybullet import pb
 from .config import load_sim_config
@@ -112,31 +113,29 @@ def run_bench(n_traj: int = 20, seed: int = 0, workers: int = 2, source: str = "
 
 def main(argv: list[str] | None = None) -> int:
     """``peel bench sim [--json] [--trajectories N] [--workers W]``."""
-    ap = argparse.ArgumentParser(prog="peel bench sim", description=__doc__)
+    ap = ArgumentParser(prog="peel bench sim", description=__doc__)
     ap.add_argument("--json", action="store_true", help="print one JSON object (default)")
-    ap.add_argument("--trajectories", type=int, default=20, help="trajectories to time")
-    ap.add_argument("--workers", type=int, default=2, help="workers for the projection")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--rollouts", type=int, default=3, help="timed 50x25 oracle rollouts")
+    ap.add_argument("--trajectories", type=positive_int, default=20, help="trajectories to time")
+    ap.add_argument("--workers", type=positive_int, default=2, help="workers for the projection")
+    ap.add_argument("--seed", type=nonnegative_int, default=0)
+    ap.add_argument("--rollouts", type=positive_int, default=3, help="timed 50x25 oracle rollouts")
     ap.add_argument("--source", choices=("sim", "plant"), default="sim")
     ap.add_argument("--calibrate", metavar="PNG", default=None,
                     help="instead: sweep constant speeds (sim and plant), write PNG + JSON")
-    ap.add_argument("--sets", type=int, default=8, help="parameter sets per speed (--calibrate)")
+    ap.add_argument("--sets", type=positive_int, default=8,
+                    help="parameter sets per speed (--calibrate)")
     a = ap.parse_args(argv)
     if a.calibrate:
+        from peel_msgs_py.outputs import check_location
+
         from .calibration import sweep, write_figure
 
+        check_location(a.calibrate, "--calibrate")
         cfg = load_sim_config()
         results = [sweep(cfg, "sim", a.sets, a.seed), sweep(cfg, "plant", a.sets, a.seed)]
         write_figure(results, a.calibrate, cfg.task.f_prewarn_n)
         print(json.dumps(results))
         return 0
-    from peel_msgs_py.errors import PeelError
-
-    if a.trajectories < 1:
-        raise PeelError(f"--trajectories must be >= 1, got {a.trajectories}")
-    if a.rollouts < 1:
-        raise PeelError(f"--rollouts must be >= 1, got {a.rollouts}")
     res = run_bench(a.trajectories, a.seed, a.workers, a.source, a.rollouts)
     print(json.dumps(res, sort_keys=True))
     return 0

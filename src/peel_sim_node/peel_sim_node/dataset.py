@@ -243,18 +243,59 @@ def generate_dataset(cfg: SimConfig, out: str | os.PathLike[str], *, param_sets:
     return manifest
 
 
+def _shard_error(path: Path, exc: Exception) -> PeelError:
+    detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return PeelError(f"dataset shard {path} is truncated or corrupt ({detail}); run "
+                     "'peel dataset' on the same --out again to regenerate it")
+
+
 def read_shard(path: str | os.PathLike[str]) -> list[Trajectory]:
-    """The trajectories of one shard."""
-    table = pq.read_table(path)
-    meta = json.loads(table.schema.metadata[b"peel"])
-    traj = table.column("traj").to_numpy()
-    arr = np.stack([table.column(n).to_numpy() for n in FIELDS], axis=1).astype(np.float64)
+    """The trajectories of one shard; PeelError naming the shard when it cannot be read."""
+    path = Path(path)
+    try:
+        table = pq.read_table(path)
+        meta = json.loads(table.schema.metadata[b"peel"])
+        traj = table.column("traj").to_numpy()
+        arr = np.stack([table.column(n).to_numpy() for n in FIELDS], axis=1).astype(np.float64)
+        infos = [(i["traj"], i["outcome"], i["params"], i["meta"]) for i in meta["trajectories"]]
+    except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as exc:
+        raise _shard_error(path, exc) from None
     out = []
-    for info in meta["trajectories"]:
-        rows = arr[traj == info["traj"]]
-        out.append(Trajectory.from_array(rows, outcome=info["outcome"], params=info["params"],
-                                         meta=info["meta"]))
+    for j, outcome, params, tmeta in infos:
+        rows = arr[traj == j]
+        out.append(Trajectory.from_array(rows, outcome=outcome, params=params, meta=tmeta))
     return out
+
+
+def check_dataset(dir: str | os.PathLike[str]) -> dict[str, Any]:
+    """Check a dataset before it is used (``peel train``, ``peel figures``); returns its manifest.
+
+    The manifest must be readable and every shard it lists present, with a Parquet footer and
+    our metadata for its set. This reads footers only (a shard cut short has no footer), so a
+    damaged dataset is refused in a moment instead of after minutes of loading or training.
+    """
+    d = Path(dir)
+    if not d.is_dir():
+        raise PeelError(f"dataset {d} is not a directory")
+    try:
+        man = json.loads((d / MANIFEST).read_text())
+        splits = list(man["set_split"])
+    except FileNotFoundError:
+        raise PeelError(f"{d} is not a complete peel dataset (no {MANIFEST})") from None
+    except (OSError, ValueError, KeyError, TypeError):
+        raise PeelError(f"dataset {d}: {MANIFEST} is unreadable or not a peel manifest") from None
+    for set_id, split in enumerate(splits):
+        path = _shard_path(d, split, set_id)
+        if not path.is_file():
+            raise PeelError(f"dataset {d}: shard {path.relative_to(d)} is missing; run "
+                            "'peel dataset' on the same --out again to regenerate it")
+        try:
+            meta = json.loads((pq.read_schema(path).metadata or {})[b"peel"])
+        except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as exc:
+            raise _shard_error(path, exc) from None
+        if meta.get("set") != set_id:
+            raise PeelError(f"dataset shard {path} holds set {meta.get('set')}, not {set_id}")
+    return man
 
 
 def load_split(dir: str | os.PathLike[str], split: str) -> list[Trajectory]:

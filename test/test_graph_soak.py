@@ -1,0 +1,143 @@
+"""``peel soak``: consecutive peels through ``peel graph`` with every node's memory.
+
+The memory probe is checked on a real process tree whose processes hold known amounts of
+memory; the command end to end with two short peels on the simulator (the 100-peel soak on the
+plant is a command to run, not part of the suite).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import pytest
+import torch
+
+from peel_bringup.soak import memory_summary, sample_tree
+
+# A "launcher" that starts two processes run as console scripts named like nodes; each holds
+# the given number of MB, then all wait to be killed.
+HOLD = "import sys, time\nb = b'x' * (int(sys.argv[1]) << 20)\nprint('held', flush=True)\ntime.sleep(600)\n"
+LAUNCHER = textwrap.dedent("""
+    import subprocess, sys, time
+    kids = [subprocess.Popen([sys.executable, path, mb], stdout=subprocess.PIPE, text=True)
+            for path, mb in zip(sys.argv[1::2], sys.argv[2::2])]
+    for k in kids:
+        k.stdout.readline()
+    print('ready', flush=True)
+    time.sleep(600)
+""")
+
+
+def test_sample_tree_names_each_node_and_reads_its_rss(tmp_path: Path) -> None:
+    for name in ("peel_sim_node", "model_learner_node"):
+        (tmp_path / name).write_text(HOLD)
+    proc = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(tmp_path / "peel_sim_node"),
+                             "60", str(tmp_path / "model_learner_node"), "150"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        rss = sample_tree(proc.pid)
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+        proc.stdout.close()
+    assert set(rss) == {"peel_graph", "peel_sim_node", "model_learner_node"}
+    assert 60 <= rss["peel_sim_node"] < 120
+    assert 150 <= rss["model_learner_node"] < 210
+    assert rss["peel_graph"] < 60
+
+
+def test_memory_summary_flat_growth_and_slope() -> None:
+    tasks = [{"task": k, "rss_mb": {"learner": 300.0 + min(k, 5) * 10.0 + (k > 10) * 2.0 * (k - 10),
+                                   "sim": 80.0}} for k in range(1, 31)]
+    mem = memory_summary(tasks, warmup=10, max_growth_mb=25.0)
+    assert mem["sim"]["flat"] is True and mem["sim"]["growth_after_warmup_mb"] == 0.0
+    learner = mem["learner"]
+    assert learner["rss_mb_first"] == 310.0 and learner["rss_mb_at_warmup"] == 350.0
+    assert learner["growth_after_warmup_mb"] == 40.0 and learner["flat"] is False
+    assert learner["slope_mb_per_task"] == pytest.approx(2.0, abs=0.01)
+    short = memory_summary(tasks[:5], warmup=10, max_growth_mb=25.0)
+    assert short["learner"]["flat"] is None  # too few tasks to say
+
+
+OVERRIDE = """
+/**:
+  ros__parameters:
+    task:
+      q_ter_mm: 6.0
+      t_max_s: 8.0
+peel_sim_node:
+  ros__parameters:
+    node:
+      task_slot_s: 20.0
+      cmd_timeout_s: 5.0
+peel_planner_node:
+  ros__parameters:
+    model:
+      path: {init}
+    mppi:
+      n_samples: 16
+      horizon: 3
+model_learner_node:
+  ros__parameters:
+    node:
+      init_model: {init}
+    maml:
+      meta_steps: 1
+      support_slices: 4
+      query_slices: 4
+      eval_slices: 4
+      m: 2
+peel_bringup:
+  ros__parameters:
+    graph:
+      final_model_wait_s: 120.0
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_soak_two_peels_reports_every_node(tmp_path: Path) -> None:
+    from model_learner_node.checkpoint import save_checkpoint
+    from model_learner_node.config import ModelConfig
+    from model_learner_node.predictor import ForcePredictor
+
+    torch.manual_seed(0)
+    init = save_checkpoint(tmp_path / "init.safetensors", ForcePredictor(ModelConfig()))
+    override = tmp_path / "override.yaml"
+    override.write_text(OVERRIDE.format(init=init))
+    out = tmp_path / "soak"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 40),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "soak", "--tasks", "2",
+                           "--warmup", "1", "--plant", "sim", "--params", str(override),
+                           "--out", str(out), "--interval", "1"],
+                          capture_output=True, text=True, timeout=540, env=env)
+    assert proc.returncode in (0, 1), proc.stderr[-3000:]  # 1 only if a node's memory grew
+    printed = json.loads(proc.stdout)
+    rep = json.loads((out / "soak.json").read_text())
+    summary = json.loads((out / "graph" / "summary.json").read_text())  # the graph's own
+    assert rep["graph_exit_status"] == 0 and rep["tasks_finished"] == 2
+    assert [t["task"] for t in rep["per_task"]] == [1, 2]
+    assert [t["outcome"] for t in rep["per_task"]] == [r["outcome"] for r in summary["results"]]
+    assert rep["safety_stops"] == sum(r["outcome"] == "safety_stop" for r in summary["results"])
+    for t in rep["per_task"]:
+        assert set(t["rss_mb"]) == {"peel_graph", "peel_sim_node", "peel_planner_node",
+                                    "model_learner_node"}
+        assert all(mb > 30 for mb in t["rss_mb"].values())  # python + numpy at least
+    assert len(rep["samples"]) >= 2 and rep["samples"][-1]["t_s"] <= time.monotonic() - t0
+    for name, node in rep["nodes"].items():
+        assert node["flat"] == (node["growth_after_warmup_mb"] <= 25.0), name
+        assert printed["nodes"][name]["rss_mb_last"] == node["rss_mb_last"]
+    assert proc.returncode == (0 if rep["memory_flat"] and rep["safety_stops"] == 0 else 1)
+    md = (out / "soak.md").read_text()
+    assert "| peel_planner_node |" in md and f"safety stops: {rep['safety_stops']}" in md
+    assert mpimg.imread(out / "soak_rss.png").ndim == 3
