@@ -210,10 +210,14 @@ def test_emulator_cli_serves_and_refuses_bad_options() -> None:
     for bad, text in ((["--speed", "0"], "speed must be a finite number > 0"),
                       (["--fault", "meteor"], "fault kind 'meteor' is not one of"),
                       (["--fault", "drop:when=3"], "is not key=value with a key of"),
-                      (["--controller-id", "a b"], "must be one token")):
+                      (["--controller-id", "a b"], "must be one token"),
+                      (["--port", "70000"], "argument --port: expected an integer >= 0 and <= "
+                                            "65535"),
+                      (["--seed", "-1"], "argument --seed: expected an integer >= 0")):
         out = subprocess.run(cmd + bad, capture_output=True, text=True, timeout=60)
         assert out.returncode == 2 and out.stderr.startswith("peel nachi-emulator: error: "), bad
         assert text in out.stderr and "Traceback" not in out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1, out.stderr
 
 
 def test_taken_port_is_a_named_error() -> None:

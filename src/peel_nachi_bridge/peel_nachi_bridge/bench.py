@@ -11,7 +11,6 @@ force spike (F_RX = 22 N) in the sample at t = 0.5 s of every task, and prints o
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -20,6 +19,7 @@ import time
 
 import numpy as np
 
+from peel_msgs_py.cliargs import ArgumentParser, float_arg, positive_int
 from peel_msgs_py.errors import PeelError
 
 from . import protocol as p
@@ -94,11 +94,11 @@ def measure(tasks: int, speed: float) -> dict[str, object]:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="peel bench nachi", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tasks", type=int, default=20, help="tasks, one spike each (default 20)")
-    ap.add_argument("--speed", type=float, default=2.0, help="emulator speed X (default 2)")
+    ap = ArgumentParser(prog="peel bench nachi", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tasks", type=positive_int, default=20,
+                    help="tasks, one spike each (default 20)")
+    ap.add_argument("--speed", type=float_arg(0.0, 100.0, min_open=True), default=2.0,
+                    help="emulator speed X (default 2)")
     args = ap.parse_args(argv)
-    if args.tasks < 1:
-        raise PeelError(f"--tasks must be >= 1, got {args.tasks}")
     print(json.dumps(measure(args.tasks, args.speed), indent=2))
     return 0
