@@ -96,8 +96,31 @@ def experiment_parser() -> argparse.ArgumentParser:
     p.add_argument("--learner-params", help="override file for config/model_learner_node.yaml "
                    "(maml and baseline2 groups)")
     p.add_argument("--first-order", action="store_true", help="first-order MAML")
+    _plant_args(p)
     _common(p)
     return p
+
+
+def _level(text: str) -> int:
+    from peel_sim_node.plant import LEVELS
+
+    try:
+        val = int(text)
+    except ValueError:
+        val = -1
+    if val not in LEVELS:
+        raise argparse.ArgumentTypeError(f"expected a plant level {list(LEVELS)}, got {text!r}")
+    return val
+
+
+def _plant_args(p: argparse.ArgumentParser) -> None:
+    from peel_sim_node.plant import SEQUENCES
+
+    p.add_argument("--plant", dest="plant_level", type=_level, metavar="LEVEL",
+                   help="plant severity level (0 = the simulator; default: plant.level of "
+                        "config/peel_sim_node.yaml; docs/simulator.md)")
+    p.add_argument("--sequence", choices=SEQUENCES,
+                   help="how the pad changes over the peels (default: stationary)")
 
 
 def sweep_parser() -> argparse.ArgumentParser:
@@ -147,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     command = "peel experiment " + " ".join(shlex.quote(a) for a in argv)
     if argv and argv[0] == "sweep":
         return _sweep(argv[1:], command)
+    if argv and argv[0] == "grid":
+        return _grid(argv[1:], command)
     args = experiment_parser().parse_args(argv)
     cfg = _base_cfg(args)
     changes: dict[str, Any] = {}
@@ -166,6 +191,10 @@ def main(argv: list[str] | None = None) -> int:
         changes["oracle"] = False
     if args.no_save_model:
         changes["save_model"] = False
+    if args.plant_level is not None:
+        changes["plant_level"] = args.plant_level
+    if args.sequence is not None:
+        changes["sequence"] = args.sequence
     cfg = replace(cfg, **changes)
     from .experiment import run_experiment
 
@@ -175,6 +204,52 @@ def main(argv: list[str] | None = None) -> int:
         learner_overrides=args.learner_params, command=command,
         maml_changes={"first_order": True} if args.first_order else None)
     print(json.dumps(_summary(results), indent=1))
+    return 0
+
+
+def grid_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="peel experiment grid",
+        description="The experiment for every plant severity level and sequence, then one "
+                    "report: OUT/summary.{md,json}, headroom.png, fig11_levels.png (and each "
+                    "cell's own files in OUT/L<level>_<sequence>/; finished cells are reused).")
+    p.add_argument("--levels", type=_ints, help="plant levels (default: all, 0,1,2,3)")
+    p.add_argument("--sequences", help="comma-separated: stationary,drift,batch-switch "
+                   "(default: all)")
+    p.add_argument("--tasks", type=_positive, help="peels per method (default 20)")
+    p.add_argument("--seeds", type=_ints, required=True,
+                   help="seeds (at least 3 for confidence intervals), e.g. 100,101,102")
+    p.add_argument("--checkpoint", help="pretrained model (default: the shipped checkpoint)")
+    p.add_argument("--learner-params", help="override file for config/model_learner_node.yaml")
+    _common(p)
+    return p
+
+
+def _grid(argv: list[str], command: str) -> int:
+    from peel_sim_node.plant import LEVELS, SEQUENCES, check_level, check_sequence
+
+    args = grid_parser().parse_args(argv)
+    cfg = _base_cfg(args)
+    levels = args.levels or LEVELS
+    for lv in levels:
+        check_level(lv)
+    seqs = tuple(x.strip() for x in (args.sequences or ",".join(SEQUENCES)).split(",")
+                 if x.strip())
+    for sq in seqs:
+        check_sequence(sq)
+    changes: dict[str, Any] = {"seeds": args.seeds, "oracle": True,
+                               "methods": ("ol-mppi", "baseline1", "baseline2"),
+                               "save_model": False}
+    if args.tasks is not None:
+        changes["tasks"] = args.tasks
+    cfg = replace(cfg, **changes)
+    from .grid import run_grid
+
+    summary = run_grid(cfg, levels=levels, sequences=seqs,
+                       checkpoint=_checkpoint(args.checkpoint), out=args.out,
+                       sim_overrides=args.sim_params, planner_overrides=args.planner_params,
+                       learner_overrides=args.learner_params, command=command)
+    print(json.dumps({"out": summary["files"], "targets": summary["targets"]}, indent=1))
     return 0
 
 
