@@ -48,7 +48,7 @@ def test_level_table_and_default():
     for bad in (-1, 4, 1.5, "3", True):
         with pytest.raises(PeelError, match="plant level"):
             check_level(bad)
-    with pytest.raises(ParameterError, match="plant.level"):
+    with pytest.raises(ParameterError, match=r"plant\.level"):
         load_sim_config({"plant.level": 7})
 
 

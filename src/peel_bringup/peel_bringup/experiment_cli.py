@@ -221,6 +221,8 @@ def grid_parser() -> argparse.ArgumentParser:
                    help="seeds (at least 3 for confidence intervals), e.g. 100,101,102")
     p.add_argument("--checkpoint", help="pretrained model (default: the shipped checkpoint)")
     p.add_argument("--learner-params", help="override file for config/model_learner_node.yaml")
+    p.add_argument("--report-only", action="store_true",
+                   help="run nothing: write the report from the cells already in --out")
     _common(p)
     return p
 
@@ -248,8 +250,10 @@ def _grid(argv: list[str], command: str) -> int:
     summary = run_grid(cfg, levels=levels, sequences=seqs,
                        checkpoint=_checkpoint(args.checkpoint), out=args.out,
                        sim_overrides=args.sim_params, planner_overrides=args.planner_params,
-                       learner_overrides=args.learner_params, command=command)
-    print(json.dumps({"out": summary["files"], "targets": summary["targets"]}, indent=1))
+                       learner_overrides=args.learner_params, command=command,
+                       report_only=args.report_only)
+    print(json.dumps({"out": summary["files"], "targets": summary["targets"],
+                      "missing": summary["missing"]}, indent=1))
     return 0
 
 

@@ -148,35 +148,41 @@ def _same_settings(path: Path, want: Mapping[str, Any]) -> bool:
 def run_grid(cfg: ExperimentConfig, *, levels: Sequence[int], sequences: Sequence[str],
              checkpoint: str, out: Path, sim_overrides: str | None = None,
              planner_overrides: str | None = None, learner_overrides: str | None = None,
-             command: str = "", window: int = 2) -> dict[str, Any]:
+             command: str = "", window: int = 2, report_only: bool = False) -> dict[str, Any]:
     """Every (level, sequence) cell, then ``summary.{json,md}``, ``headroom.png`` and
-    ``fig11_levels.png`` in ``out``."""
+    ``fig11_levels.png`` in ``out``. ``report_only``: run nothing, report the cells already in
+    ``out`` (made with the same seeds and tasks) and list the others as ``missing``."""
     from . import report as rp
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cells: dict[str, Any] = {}
+    missing: list[str] = []
     for level in levels:
         for seq in sequences:
             name = cell_name(level, seq)
             cdir = out / name
             ccfg = replace(cfg, plant_level=int(level), sequence=seq)
             want = {"tasks": ccfg.tasks, "seeds": list(ccfg.seeds), "checkpoint": str(checkpoint),
-                    "sequence": seq, "command": f"{command} [cell {name}]"}
+                    "sequence": seq}
             res_path = cdir / "results.json"
-            if res_path.is_file() and _same_settings(res_path, want):
+            if res_path.is_file() and _same_settings(res_path, want) and json.loads(
+                    res_path.read_text())["plant"]["level"] == level:
                 results = json.loads(res_path.read_text())
+            elif report_only:
+                missing.append(name)
+                continue
             else:
                 results = run_experiment(ccfg, checkpoint=checkpoint, out=cdir,
                                          sim_overrides=sim_overrides,
                                          planner_overrides=planner_overrides,
                                          learner_overrides=learner_overrides,
-                                         command=want["command"])
+                                         command=f"{command} [cell {name}]")
             cells[name] = {"summary": cell_summary(results, window),
                            "methods": rp.flat_methods(results)}
     summary = {"command": command, "checkpoint": str(checkpoint), "levels": list(levels),
                "sequences": list(sequences), "seeds": list(cfg.seeds), "tasks": cfg.tasks,
-               "window": window, "check_tasks": list(CHECK_TASKS),
+               "window": window, "check_tasks": list(CHECK_TASKS), "missing": missing,
                "cells": {k: v["summary"] for k, v in cells.items()}}
     summary["targets"] = grid_targets(summary)
     rp.write_json(out / "summary.json", summary)
@@ -228,6 +234,8 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
     lines = ["# OL-MPPI across plant severity levels and sequences", "",
              f"Command: `{summary['command']}`  ", f"Checkpoint: `{summary['checkpoint']}`  ",
              f"Seeds {summary['seeds']}, {summary['tasks']} tasks per method and seed. "
+             + (f"Cells not run: {', '.join(summary['missing'])}. " if summary.get("missing")
+                else "") +
              "Values: mean ± 95 % t-interval half width over seeds. Fraction of headroom closed "
              f"at task k: sum over tasks k-{summary['window']}..k+{summary['window']} of "
              "(J_B1 - J_m) / (J_B1 - J_oracle), pooled over seeds (per-seed mean ± CI beside).",
