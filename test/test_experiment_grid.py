@@ -29,7 +29,7 @@ def test_closed_fraction_windows_and_pools():
     })
     f = closed_fraction(runs, "ol-mppi", 5, window=2)
     assert f["values"] == [0.5, 1.0] and f["pooled"] == pytest.approx(0.75)
-    assert f["window"] == [3, 7]
+    assert f["window"] == [3, 7] and f["headroom_in_window"] == pytest.approx(2.0)
     # window clipped at the run's end; tasks beyond the run are not reported
     assert closed_fraction(runs, "ol-mppi", 10)["pooled"] == pytest.approx(0.75)
     assert closed_fraction(runs, "ol-mppi", 11)["n"] == 0

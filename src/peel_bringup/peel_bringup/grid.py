@@ -67,7 +67,7 @@ def _costs(runs: Mapping[str, Any], seed: str, method: str) -> np.ndarray:
 def closed_fraction(runs: Mapping[str, Any], method: str, task: int, window: int = 2
                     ) -> dict[str, Any]:
     """Fraction of the headroom method has closed around ``task`` (module docstring)."""
-    per_seed, num_all, den_all = [], 0.0, 0.0
+    per_seed, num_all, den_all, n_all = [], 0.0, 0.0, 0
     for s in runs:
         b1, orc, m = (_costs(runs, s, x) for x in ("baseline1", ORACLE, method))
         n = min(len(b1), len(orc), len(m))
@@ -77,10 +77,14 @@ def closed_fraction(runs: Mapping[str, Any], method: str, task: int, window: int
         num, den = float(np.sum(b1[lo:hi] - m[lo:hi])), float(np.sum(b1[lo:hi] - orc[lo:hi]))
         num_all += num
         den_all += den
+        n_all += hi - lo
         per_seed.append(num / den if abs(den) > 1e-9 else float("nan"))
     out = ci95(per_seed)
     out["pooled"] = num_all / den_all if abs(den_all) > 1e-9 else None
     out["window"] = [task - window, task + window]
+    # the headroom the fraction divides by (mean J_B1 - J_oracle per peel of the window): near
+    # zero the fraction is meaningless, whatever its value
+    out["headroom_in_window"] = den_all / n_all if n_all else None
     return out
 
 
@@ -346,6 +350,8 @@ def plot_fig11_levels(cells: Mapping[str, Mapping[str, Sequence[Mapping[str, Any
         for j, lvl in enumerate(levels):
             ax = axes[i][j]
             methods = cells.get(cell_name(lvl, seq), {})
+            if not methods:
+                ax.text(0.5, 0.5, "not run", ha="center", va="center", transform=ax.transAxes)
             for m, recs in methods.items():
                 col, mk = _STYLE.get(m, ("grey", ""))
                 k = [r["task"] for r in recs]
