@@ -245,7 +245,8 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
              "(J_B1 - J_m) / (J_B1 - J_oracle), pooled over seeds (per-seed mean ± CI beside).",
              "", "## Headroom and fraction closed", "",
              "| level | sequence | headroom J_B1 - J_or | B1 / oracle - 1 | method | "
-             + " | ".join(f"closed @ {k} (pooled; per-seed)" for k in summary["check_tasks"])
+             + " | ".join(f"closed @ {k} (pooled (window headroom); per-seed)"
+                          for k in summary["check_tasks"])
              + " | OL - B2, J tasks 16-20 |",
              "|---|---|---|---|---|" + "---|" * len(summary["check_tasks"]) + "---|"]
     for c in summary["cells"].values():
@@ -256,7 +257,8 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
             for k in summary["check_tasks"]:
                 x = ks.get(str(k))
                 vals.append("–" if x is None else
-                            f"{_fmt(x['pooled'])}; {_ci(x)}")
+                            f"{_fmt(x['pooled'])} (H {_fmt(x.get('headroom_in_window'))}); "
+                            f"{_ci(x)}")
             lines.append(f"| {c['level']} | {c['sequence']} | {_ci(c['headroom'])} | "
                          f"{_ci(c['headroom_rel'], '.1%')} | {m} | " + " | ".join(vals)
                          + f" | {_ci(c.get('ol_minus_b2_last5'))} |")
