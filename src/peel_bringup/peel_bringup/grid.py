@@ -285,8 +285,19 @@ def _fmt(x: Any) -> str:
     return "–" if x is None else f"{x:.2f}"
 
 
+#: fractions closed are drawn only where Baseline 1's mean J is this far above the oracle's;
+#: below it the fraction divides by noise
+MIN_HEADROOM_REL = 0.10
+
+
+def _has_headroom(cell: Mapping[str, Any]) -> bool:
+    h = cell.get("headroom_rel", {}).get("mean")
+    return h is not None and h >= MIN_HEADROOM_REL
+
+
 def plot_headroom(summary: Mapping[str, Any], path: Path) -> Path:
-    """Fraction of headroom closed against level (one panel per sequence) and the headroom."""
+    """Fraction of headroom closed against level (one panel per sequence; only cells with
+    ``MIN_HEADROOM_REL`` of headroom) and the headroom itself."""
     from .report import _pyplot, _savefig
 
     plt = _pyplot()
@@ -302,7 +313,7 @@ def plot_headroom(summary: Mapping[str, Any], path: Path) -> Path:
                 for lvl in summary["levels"]:
                     c = summary["cells"].get(cell_name(lvl, seq), {})
                     x = c.get("closed", {}).get(m, {}).get(str(k))
-                    if x is None or x.get("pooled") is None:
+                    if x is None or x.get("pooled") is None or not _has_headroom(c):
                         continue
                     xs.append(lvl + (0.08 if m == "baseline2" else -0.08))
                     ys.append(x["pooled"])
@@ -316,7 +327,7 @@ def plot_headroom(summary: Mapping[str, Any], path: Path) -> Path:
         ax.set_xticks(summary["levels"])
         ax.set_xlabel("plant severity level")
         ax.set_ylabel("fraction of headroom closed")
-        ax.set_title(seq)
+        ax.set_title(f"{seq} (cells with headroom >= {MIN_HEADROOM_REL:.0%})", fontsize=9)
     axes[0].legend(fontsize=6)
     ax = axes[-1]
     for seq in seqs:
