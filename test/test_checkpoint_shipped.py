@@ -11,11 +11,14 @@ from the robot's own position and speed), and the test requires at least 1.33x.
 
 import json
 
+import numpy as np
+import torch
+
 from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from model_learner_node.metrics import evaluate, persistence_metrics
 from model_learner_node.windows import stack_windows
 from peel_sim_node.config import load_sim_config
-from peel_sim_node.dataset import generate_set, split_of_sets
+from peel_sim_node.dataset import config_hash, generate_set, split_of_sets
 
 TOLERANCE = 0.10
 
@@ -28,6 +31,31 @@ def test_shipped_checkpoint_loads_and_is_small():
     cfg = json.loads(path.with_suffix(".json").read_text())
     assert cfg["meta"]["dataset"]["source"] == "sim"
     assert (path.parent / "PROVENANCE.md").is_file()
+
+
+def test_shipped_checkpoint_was_trained_on_todays_simulator_settings():
+    """Every simulator parameter that shapes simulator data (the vertical compliance, the
+    calibrated loads, ...) is as it was when the shipped model's dataset was made; a change
+    calls for the commands of checkpoints/PROVENANCE.md."""
+    meta = json.loads(shipped_checkpoint().with_suffix(".json").read_text())["meta"]
+    assert meta["dataset"]["config_hash"] == config_hash(load_sim_config(), "sim")
+
+
+def test_shipped_checkpoint_fitted_a_load_dependent_indentation():
+    """The compliant blade's psi follows the vertical load, so the pad compliance the model
+    uses for L_PENE (Eq. 24) is fitted on data where psi varies: psi ~ c * F_RZ holds on a
+    regenerated test set to within the spread the fit through the origin allows."""
+    path = shipped_checkpoint()
+    model = load_checkpoint(path)
+    meta = json.loads(path.with_suffix(".json").read_text())["meta"]
+    ds = meta["dataset"]
+    set_id = min(int(k) for k in meta["metrics"]["test_rmse_by_set"])
+    trajs = generate_set(load_sim_config(), set_id, ds["per_set"], ds["seed"], "sim")
+    psi = np.concatenate([t.psi for t in trajs])
+    fz = np.concatenate([t.fz for t in trajs])
+    assert np.ptp(psi) > 0.05  # psi is not the old constant 0.125 mm
+    c = float(model.psi_from_force(torch.tensor([1.0]))[0])
+    assert 0.5 * np.median(psi / fz) < c < 2.0 * np.median(psi / fz)
 
 
 def test_shipped_checkpoint_reaches_recorded_error_on_regenerated_test_set():

@@ -155,3 +155,41 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], needl
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], proc.stderr
     assert not (tmp_path / "o" / "results.json").exists()
+
+
+def test_grid_runs_cells_and_writes_one_report(setup: dict[str, Path]) -> None:
+    """`peel experiment grid`: one cell run, then a report-only call that adds a cell it has
+    not run (listed as missing, nothing peeled); files read back by json and matplotlib."""
+    out = setup["dir"] / "grid"
+    common = ["--tasks", "2", "--seeds", "0,1,2", "--out", str(out), "--checkpoint",
+              str(setup["ckpt"]), "--workers", "2", "--learner-params", str(setup["learner"]),
+              *_small(setup)]
+    proc = _peel("experiment", "grid", "--levels", "3", "--sequences", "drift", *common)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    cell = json.loads((out / "L3_drift" / "results.json").read_text())
+    assert cell["plant"]["level"] == 3 and cell["sequence"] == "drift"
+    fr = [t["substrate"]["friction"] for t in cell["runs"]["0"]["oracle"]["tasks"]]
+    from peel_bringup.experiment import substrates
+    from peel_sim_node.config import load_sim_config
+
+    want = substrates(load_sim_config(str(setup["sim"])), 0, 2, level=3, sequence="drift")
+    assert fr == [p["friction"] for p in want]
+    summary = json.loads((out / "summary.json").read_text())
+    c = summary["cells"]["L3_drift"]
+    assert c["headroom"]["n"] == 3 and c["headroom"]["ci95"] is not None
+    for m in ("ol-mppi", "baseline1", "baseline2", "oracle"):
+        assert c["metrics"][m]["peels"] == 6
+        assert set(c["metrics"][m]) >= {"cost", "t_cpl", "sum_fx", "sum_fz", "peak_force",
+                                        "safety_stops"}
+    proc = _peel("experiment", "grid", "--levels", "3,0", "--sequences", "drift",
+                 "--report-only", *common)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["missing"] == ["L0_drift"] and not (out / "L0_drift").exists()
+    assert "L3_drift" in summary["cells"]
+    md = (out / "summary.md").read_text()
+    assert "Cells not run: L0_drift" in md and "| 3 | drift | ol-mppi |" in md
+    for png in ("headroom.png", "fig11_levels.png"):
+        assert mpimg.imread(out / png).shape[2] in (3, 4)
+    bad = _peel("experiment", "grid", "--levels", "7", *common)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr

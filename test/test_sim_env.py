@@ -137,9 +137,11 @@ def test_rollout_is_noise_free_truth_and_leaves_env_unchanged():
 
 
 def test_plant_differs_from_sim():
+    # plant severity level 1 (docs/simulator.md); the other levels: test_sim_plant_levels.py
+    cfg1 = load_sim_config({"plant.level": 1})
     rng = np.random.default_rng(0)
-    sim = [sample_params(CFG, rng, "sim") for _ in range(200)]
-    plant = [sample_params(CFG, rng, "plant") for _ in range(200)]
+    sim = [sample_params(cfg1, rng, "sim") for _ in range(200)]
+    plant = [sample_params(cfg1, rng, "plant") for _ in range(200)]
 
     def mean(sets, name):
         return np.mean([p[name] for p in sets])
@@ -151,7 +153,7 @@ def test_plant_differs_from_sim():
     # same physical parameters: declared effects (residual vacuum, lag, drift) still differ
     p = flat_params()
     hs = const_run(p, u=2.0, n=30, source="sim", seed=1)
-    hp = const_run(p, u=2.0, n=30, source="plant", seed=1)
+    hp = const_run(p, u=2.0, n=30, source="plant", seed=1, cfg=cfg1)
     assert hp.fz[1:10].mean() > hs.fz[1:10].mean() + 1.0  # residual vacuum near C
 
 
@@ -167,7 +169,10 @@ def test_injected_effect_shows_in_data_and_rollout():
     after = (base.q[:n] > 2.5) & (inj.q[:n] > 2.5)
     assert before.sum() >= 5 and after.sum() >= 5
     assert np.allclose(base.fz[:n][before], inj.fz[:n][before])
-    assert inj.fz[:n][after].mean() > base.fz[:n][after].mean() + 3.0
+    # +4 N of load: F_RZ rises by less than 4 N because the compliant blade sinks deeper into
+    # the pad, which lowers the glass's lift and its bending force (Eq. 19)
+    assert inj.fz[:n][after].mean() > base.fz[:n][after].mean() + 1.5
+
     def always(s: EffectState) -> EffectAction:
         return EffectAction(load_n=4.0)
 
@@ -179,4 +184,4 @@ def test_injected_effect_shows_in_data_and_rollout():
         for _ in range(20):
             env.step(1.5)
         out_base = env.rollout(np.full((1, 5), 2.0))
-    assert out_inj[0, :, 2].mean() > out_base[0, :, 2].mean() + 3.0
+    assert out_inj[0, :, 2].mean() > out_base[0, :, 2].mean() + 1.5

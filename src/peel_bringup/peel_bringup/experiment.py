@@ -100,6 +100,10 @@ class ExperimentConfig:
     sweep_h: tuple[int, ...] = (1, 3, 5, 7, 10)
     sweep_lambda: tuple[float, ...] = (0.02, 0.05, 0.1, 0.2, 0.5)
     sweep_seeds: tuple[int, ...] = (0, 1, 2)
+    #: plant severity level (None: ``plant.level`` of the simulator config), docs/simulator.md
+    plant_level: int | None = None
+    #: how the process changes over the peels: stationary, drift or batch-switch
+    sequence: str = "stationary"
 
     @classmethod
     def from_params(cls, flat: Mapping[str, Any]) -> ExperimentConfig:
@@ -158,6 +162,8 @@ class Setup:
     substrate_stream: int = 0  # 0: the experiment's substrates, 1: the sweep's
     maml_changes: dict[str, Any] = field(default_factory=dict)
     baseline2_changes: dict[str, Any] = field(default_factory=dict)
+    plant_level: int | None = None  # None: plant.level of the simulator config
+    sequence: str = "stationary"
 
 
 def task_seed(seed: int, k: int, stream: int = 0) -> int:
@@ -165,12 +171,18 @@ def task_seed(seed: int, k: int, stream: int = 0) -> int:
     return int(np.random.SeedSequence([seed, stream, k]).generate_state(1)[0])
 
 
-def substrates(sim_cfg: Any, seed: int, n: int, stream: int = 0) -> list[dict[str, float]]:
-    """Plant parameters of the n substrates of ``seed`` (one per task, 3.2.1 intervals)."""
+def substrates(sim_cfg: Any, seed: int, n: int, stream: int = 0, level: int | None = None,
+               sequence: str = "stationary") -> list[dict[str, float]]:
+    """Plant parameters of the n substrates of ``seed`` (one per task): drawn from the 3.2.1
+    intervals of plant severity ``level``, then changed over the peels as ``sequence`` says
+    (:func:`peel_sim_node.plant.sequence_params`). The draws do not depend on the sequence, so
+    the sequences of one seed peel the same substrates until the process changes."""
     from peel_sim_node.env import sample_params
+    from peel_sim_node.plant import sequence_params
 
-    return [dict(sample_params(sim_cfg, np.random.default_rng([seed, stream, k]), "plant"))
-            for k in range(n)]
+    return [sequence_params(sim_cfg, dict(sample_params(
+        sim_cfg, np.random.default_rng([seed, stream, k]), "plant", level)), k + 1, sequence)
+        for k in range(n)]
 
 
 def planner_params(base: Mapping[str, Any] | None = None, *, n_samples: int | None = None,
@@ -239,7 +251,8 @@ def run_job(method: str, seed: int, setup: Setup,
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     sim_cfg = load_sim_config(setup.sim_overrides)
-    subs = substrates(sim_cfg, seed, setup.tasks, setup.substrate_stream)
+    subs = substrates(sim_cfg, seed, setup.tasks, setup.substrate_stream, setup.plant_level,
+                      setup.sequence)
     pcfg = PlannerConfig.from_params(setup.planner_params)
     cost = Cost(pcfg.cost)
     predictor = None if method == ORACLE else load_checkpoint(setup.checkpoint)
@@ -250,7 +263,7 @@ def run_job(method: str, seed: int, setup: Setup,
     last: Trajectory | None = None
     model_path = None
     env = PeelEnv(sim_cfg, source="plant", seed=task_seed(seed, 0, setup.substrate_stream),
-                  params=subs[0])
+                  params=subs[0], level=setup.plant_level)
     try:
         for k, params in enumerate(subs):
             ts = task_seed(seed, k, setup.substrate_stream)
@@ -332,15 +345,32 @@ def run_jobs(jobs: Sequence[tuple[str, int]], setup: Setup, workers: int = 1,
 # ------------------------------------------------------------------------------ experiment
 
 
+def plant_description(sim_overrides: str | None, level: int | None) -> dict[str, Any]:
+    """The plant level an experiment ran on: number, name and every value that differs from
+    the simulator (docs/simulator.md)."""
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.plant import plant_spec
+
+    cfg = load_sim_config(sim_overrides)
+    spec = plant_spec(cfg, level)
+    return {"level": spec.level, "name": spec.name, "spec": asdict(spec),
+            "sequence_params": dict(cfg.sequence._values)}
+
+
 def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out: Path,
                    sim_overrides: str | None = None, planner_overrides: str | None = None,
                    learner_overrides: str | None = None, command: str = "",
                    maml_changes: Mapping[str, Any] | None = None,
                    baseline2_changes: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Run every method (and the oracle) on every seed; write results.json, figures, report."""
+    from peel_sim_node.plant import check_level, check_sequence
+
     from . import report as rp
 
     check_methods(cfg.methods)
+    if cfg.plant_level is not None:
+        check_level(cfg.plant_level)
+    check_sequence(cfg.sequence)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     pparams = planner_params(n_samples=cfg.n_samples, horizon=cfg.horizon, lam=cfg.lam,
@@ -349,7 +379,8 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
                   sim_overrides=sim_overrides, learner_overrides=learner_overrides,
                   out_dir=str(out), save_model=cfg.save_model,
                   maml_changes=dict(maml_changes or {}),
-                  baseline2_changes=dict(baseline2_changes or {}))
+                  baseline2_changes=dict(baseline2_changes or {}),
+                  plant_level=cfg.plant_level, sequence=cfg.sequence)
     methods = list(cfg.methods) + ([ORACLE] if cfg.oracle else [])
     jobs = [(m, s) for s in cfg.seeds for m in methods]
     t0 = time.perf_counter()
@@ -379,6 +410,8 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
         "seeds": list(cfg.seeds),
         "checkpoint": str(checkpoint),
         "planner": {"n_samples": cfg.n_samples, "horizon": cfg.horizon, "lambda": cfg.lam},
+        "plant": plant_description(sim_overrides, cfg.plant_level),
+        "sequence": cfg.sequence,
         "config": {**asdict(cfg), "planner_params": pparams},
         "methods": {m: {"tasks": agg[m]} for m in methods},
         "runs": {s: {m: {"tasks": runs[s][m]} for m in methods} for s in runs},

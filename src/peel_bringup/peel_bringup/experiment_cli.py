@@ -25,7 +25,7 @@ from peel_msgs_py.cliargs import (
     run_main,
 )
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.outputs import OutputDir
+from peel_msgs_py.outputs import OutputDir, read_marker
 
 from .experiment import ExperimentConfig, check_methods, load_experiment_config
 
@@ -94,8 +94,31 @@ def experiment_parser() -> ArgumentParser:
     p.add_argument("--learner-params", help="override file for config/model_learner_node.yaml "
                    "(maml and baseline2 groups)")
     p.add_argument("--first-order", action="store_true", help="first-order MAML")
+    _plant_args(p)
     _common(p)
     return p
+
+
+def _level(text: str) -> int:
+    from peel_sim_node.plant import LEVELS
+
+    try:
+        val = int(text)
+    except ValueError:
+        val = -1
+    if val not in LEVELS:
+        raise argparse.ArgumentTypeError(f"expected a plant level {list(LEVELS)}, got {text!r}")
+    return val
+
+
+def _plant_args(p: ArgumentParser) -> None:
+    from peel_sim_node.plant import SEQUENCES
+
+    p.add_argument("--plant", dest="plant_level", type=_level, metavar="LEVEL",
+                   help="plant severity level (0 = the simulator; default: plant.level of "
+                        "config/peel_sim_node.yaml; docs/simulator.md)")
+    p.add_argument("--sequence", choices=SEQUENCES,
+                   help="how the pad changes over the peels (default: stationary)")
 
 
 def sweep_parser() -> ArgumentParser:
@@ -145,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     command = "peel experiment " + " ".join(shlex.quote(a) for a in argv)
     if argv and argv[0] == "sweep":
         return _sweep(argv[1:], command)
+    if argv and argv[0] == "grid":
+        return _grid(argv[1:], command)
     args = experiment_parser().parse_args(argv)
     out = OutputDir(args.out, command="peel experiment", force=args.force)
     cfg = _base_cfg(args)
@@ -165,6 +190,10 @@ def main(argv: list[str] | None = None) -> int:
         changes["oracle"] = False
     if args.no_save_model:
         changes["save_model"] = False
+    if args.plant_level is not None:
+        changes["plant_level"] = args.plant_level
+    if args.sequence is not None:
+        changes["sequence"] = args.sequence
     cfg = replace(cfg, **changes)
     from .experiment import run_experiment
 
@@ -174,6 +203,61 @@ def main(argv: list[str] | None = None) -> int:
         learner_overrides=args.learner_params, command=command,
         maml_changes={"first_order": True} if args.first_order else None)
     print(json.dumps(_summary(results), indent=1))
+    return 0
+
+
+def grid_parser() -> ArgumentParser:
+    p = ArgumentParser(
+        prog="peel experiment grid",
+        description="The experiment for every plant severity level and sequence, then one "
+                    "report: OUT/summary.{md,json}, headroom.png, fig11_levels.png (and each "
+                    "cell's own files in OUT/L<level>_<sequence>/; finished cells are reused).")
+    p.add_argument("--levels", type=_ints, help="plant levels (default: all, 0,1,2,3)")
+    p.add_argument("--sequences", help="comma-separated: stationary,drift,batch-switch "
+                   "(default: all)")
+    p.add_argument("--tasks", type=_positive, help="peels per method (default 20)")
+    p.add_argument("--seeds", type=_ints, required=True,
+                   help="seeds (at least 3 for confidence intervals), e.g. 100,101,102")
+    p.add_argument("--checkpoint", help="pretrained model (default: the shipped checkpoint)")
+    p.add_argument("--learner-params", help="override file for config/model_learner_node.yaml")
+    p.add_argument("--report-only", action="store_true",
+                   help="run nothing: write the report from the cells already in --out")
+    _common(p)
+    return p
+
+
+def _grid(argv: list[str], command: str) -> int:
+    from peel_sim_node.plant import LEVELS, SEQUENCES, check_level, check_sequence
+
+    args = grid_parser().parse_args(argv)
+    earlier = read_marker(args.out) if args.out.is_dir() else None
+    resume = earlier is not None and earlier.get("command") == "peel experiment grid"
+    out = None if resume else OutputDir(args.out, command="peel experiment grid", force=args.force)
+    cfg = _base_cfg(args)
+    levels = args.levels or LEVELS
+    for lv in levels:
+        check_level(lv)
+    seqs = tuple(x.strip() for x in (args.sequences or ",".join(SEQUENCES)).split(",")
+                 if x.strip())
+    for sq in seqs:
+        check_sequence(sq)
+    changes: dict[str, Any] = {"seeds": args.seeds, "oracle": True,
+                               "methods": ("ol-mppi", "baseline1", "baseline2"),
+                               "save_model": False}
+    if args.tasks is not None:
+        changes["tasks"] = args.tasks
+    cfg = replace(cfg, **changes)
+    from .grid import run_grid
+
+    if out is not None:  # a new grid; an earlier grid's folder is resumed (its cells reused)
+        out.create()
+    summary = run_grid(cfg, levels=levels, sequences=seqs,
+                       checkpoint=_checkpoint(args.checkpoint), out=args.out,
+                       sim_overrides=args.sim_params, planner_overrides=args.planner_params,
+                       learner_overrides=args.learner_params, command=command,
+                       report_only=args.report_only)
+    print(json.dumps({"out": summary["files"], "targets": summary["targets"],
+                      "missing": summary["missing"]}, indent=1))
     return 0
 
 

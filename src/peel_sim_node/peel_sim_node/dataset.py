@@ -61,9 +61,11 @@ def code_version() -> str:
 
 def config_hash(cfg: SimConfig, source: str | None = None) -> str:
     """Hash of the simulator parameters that shape the data of ``source``: every group but
-    ``dataset.*``; for ``source="sim"`` also not ``plant.*``, which cannot change simulator
+    ``dataset.*`` and ``sequence.*`` (experiments only); for ``source="sim"`` also not the plant
+    levels' groups (``plant.*``, ``plant_l2.*``, ``plant_l3.*``), which cannot change simulator
     data (so tuning the plant does not invalidate simulator datasets)."""
-    skip = ("dataset.", "plant.") if source == "sim" else ("dataset.",)
+    skip = (("dataset.", "sequence.", "plant.", "plant_l2.", "plant_l3.") if source == "sim"
+            else ("dataset.", "sequence."))
     flat = {k: v for k, v in cfg.flat.items() if not k.startswith(skip)}
     return hashlib.sha256(json.dumps(flat, sort_keys=True).encode()).hexdigest()[:16]
 

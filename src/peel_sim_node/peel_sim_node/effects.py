@@ -91,3 +91,4 @@ class ResidualVacuum:
 
     def __call__(self, state: EffectState) -> EffectAction:
         return EffectAction(load_n=self.load_n * math.exp(-max(state.q_mm, 0.0) / self.length_mm))
+

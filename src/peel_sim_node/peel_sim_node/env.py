@@ -36,25 +36,25 @@ from ._pybullet import pb
 from .config import SimConfig
 from .effects import Effect, EffectAction, EffectState, combine
 from .noise import ForceSensor
-from .plant import SOURCES, actuator_lag_s, declared_effects, drift_rate
+from .plant import SOURCES, PlantSpec, source_spec
 from .scene import MM, Scene
 
 _NO_ACTION = EffectAction()
+
+#: Contact points of the blade-pad box manifold; each carries ``stiffness * psi`` (3.2.1).
+PAD_CONTACT_POINTS = 4
 
 #: Physical parameters that define one task (P_k of 3.2.1) besides the tile factors.
 CORE_PARAMS: tuple[str, ...] = ("friction", "stiffness", "damping")
 
 
-def sample_params(cfg: SimConfig, rng: np.random.Generator, source: str = "sim") -> dict[str, float]:
-    """Draw P_k: friction, stiffness, damping uniform in their intervals (3.2.1; the plant's
-    shifted ones for ``source="plant"``) and one local adhesion factor per pad tile."""
-    if source not in SOURCES:
-        raise PeelError(f"source must be one of {SOURCES}, got {source!r}")
-    grp = cfg.randomization if source == "sim" else cfg.plant
-    out = {
-        name: float(rng.uniform(getattr(grp, name + "_low"), getattr(grp, name + "_high")))
-        for name in CORE_PARAMS
-    }
+def sample_params(cfg: SimConfig, rng: np.random.Generator, source: str = "sim",
+                  level: int | None = None) -> dict[str, float]:
+    """Draw P_k: friction, stiffness, damping uniform in their intervals (3.2.1; for
+    ``source="plant"`` the shifted ones of plant severity ``level``, default ``plant.level``)
+    and one local adhesion factor per pad tile."""
+    spec = source_spec(cfg, source, level)
+    out = {name: float(rng.uniform(*getattr(spec, name))) for name in CORE_PARAMS}
     s = cfg.randomization.tile_spread
     for i, a in enumerate(rng.uniform(1.0 - s, 1.0 + s, cfg.scene.n_tiles)):
         out[f"tile_{i}"] = float(a)
@@ -114,7 +114,8 @@ class PeelEnv:
     """
 
     def __init__(self, cfg: SimConfig, *, source: str = "sim", seed: int = 0,
-                 params: dict[str, float] | None = None, effects: Sequence[Effect] = ()) -> None:
+                 params: dict[str, float] | None = None, effects: Sequence[Effect] = (),
+                 level: int | None = None) -> None:
         if source not in SOURCES:
             raise PeelError(f"source must be one of {SOURCES}, got {source!r}")
         for e in effects:
@@ -122,13 +123,15 @@ class PeelEnv:
                 raise PeelError(f"effects must be callables, got {type(e).__name__}")
         self.cfg = cfg
         self.source = source
-        self.effects: list[Effect] = (declared_effects(cfg) if source == "plant" else []) + list(
-            effects)
-        self._lag = actuator_lag_s(cfg, source)
+        #: the plant severity level this env runs (level 0 for the simulator), docs/simulator.md
+        self.plant: PlantSpec = source_spec(cfg, source, level)
+        self.level = self.plant.level
+        self.effects: list[Effect] = self.plant.effects() + list(effects)
+        self._lag = self.plant.actuator_lag_s
         self._fixed_params = _check_params(cfg, params) if params is not None else None
         n = cfg.noise
         self.sensor = ForceSensor(n.force_resolution_n, n.force_sigma_n, n.force_bias_sigma_n,
-                                  drift_rate(cfg, source))
+                                  self.plant.drift_n_per_sqrt_s)
         self.scene = Scene(cfg)
         self._dt = cfg.task.dt_s
         self._nsub = cfg.scene.substeps
@@ -148,10 +151,11 @@ class PeelEnv:
         elif self._fixed_params is not None:
             p = dict(self._fixed_params)
         else:
-            p = sample_params(self.cfg, self.rng, self.source)
+            p = sample_params(self.cfg, self.rng, self.source, self.level)
         self.params: dict[str, float] = p
         self._tile_list = [float(p[f"tile_{i}"]) for i in range(self._n_tiles)]
         self._damping = p["damping"]
+        self._k_pad = PAD_CONTACT_POINTS * p["stiffness"]
         self.scene.apply_params(p["friction"], p["stiffness"], p["damping"])
         self.scene.reset_bodies()
         self.scene.set_blade_friction(self._mu_static)
@@ -189,7 +193,8 @@ class PeelEnv:
             self._hist = Trajectory(
                 t=rows[:, 0], q=rows[:, 1], v=rows[:, 2], u=u, fx=rows[:, 4], fz=rows[:, 5],
                 psi=rows[:, 6], outcome=self.outcome, params=dict(self.params),
-                meta={"source": self.source, "seed": self._seed, "dt_s": self._dt},
+                meta={"source": self.source, "seed": self._seed, "dt_s": self._dt,
+                      "plant_level": self.level},
             )
         return self._hist
 
@@ -285,17 +290,21 @@ class PeelEnv:
         self._tile_x0 = self.scene.tile_x0
         self._tile_len = sc.tile_length_mm * MM
         self._n_tiles = sc.n_tiles
-        self._mu_static = sc.static_friction_ratio
+        self._mu_static = (sc.static_friction_ratio if self.plant.static_friction_ratio is None
+                           else self.plant.static_friction_ratio)
         self._v_stick = sc.stick_speed_mmps * MM
         self._k_c = sc.coupling_stiffness_n_per_mm / MM
         self._c_c = sc.coupling_damping_ns_per_mm / MM
         self._dtp = self.scene.dt_phys
         self._a_peel = 1.0 - math.exp(-self._dtp / ld.rate_tau_s)
         self._a_lag = 1.0 - math.exp(-self._dtp / self._lag) if self._lag > 0.0 else 1.0
-        self._base_n = ld.base_n
+        self._base_n = ld.base_n * self.plant.base_load_scale
         self._v_ref = ld.rate_ref_mmps * MM
         self._rate_n = ld.rate_exponent
-        self._rate_gain = ld.rate_gain
+        self._rate_gain = ld.rate_gain * self.plant.rate_gain_scale
+        self._d_tool = sc.press_depth_mm * MM
+        self._c_tool = sc.tool_compliance_z_mm_per_n * MM  # m/N
+        self._w_sub = sc.substrate_mass_kg * 9.81
         self._v_sigma = cfg.noise.velocity_sigma_mmps
         self._f_prewarn = tk.f_prewarn_n
         self._q_ter = tk.q_ter_mm
@@ -350,6 +359,8 @@ class PeelEnv:
         mu_static, v_stick, k_c, c_c = self._mu_static, self._v_stick, self._k_c, self._c_c
         v_ref, rate_n, base_n = self._v_ref, self._rate_n, self._base_n
         gain = self._rate_gain * self._damping * v_ref  # the left part of _engine_step's product
+        d_tool, c_tool, w_sub, k_pad = self._d_tool, self._c_tool, self._w_sub, self._k_pad
+        set_depth = scene.set_blade_depth
         v_robot, x_robot, v_peel, mu = d.v_robot, d.x_robot, d.v_peel, d.blade_mu
         cur_a, cur_mu = scene._local, scene._blade_mu
         f_c = xd_b = 0.0
@@ -369,6 +380,7 @@ class PeelEnv:
             f_c = k_c * (x_robot - x_b) + c_c * (v_robot - xd_b) - resist_n
             v_peel += ((0.0 if xd_b < 0.0 else xd_b) - v_peel) * a_peel  # max(xd_b, 0.0)
             load = a_loc * (base_n + gain * (v_peel / v_ref) ** rate_n) + load_n
+            set_depth((d_tool + c_tool * (load + w_sub)) / (1.0 + c_tool * k_pad * a_loc))
             motor(blade, 0, torque, 0.0, 0.0, f_c, physicsClientId=cid)
             motor(sub, 0, torque, 0.0, 0.0, -load, physicsClientId=cid)
             step_sim(cid)
@@ -393,9 +405,19 @@ class PeelEnv:
         v_ref = self._v_ref
         rate = self._rate_gain * self._damping * v_ref * (d.v_peel / v_ref) ** self._rate_n
         load = a_loc * (self._base_n + rate) + act.load_n
+        # vertical compliance: tool spring (d_tool - psi) / c_tool + glass load = pad k_pad a psi
+        self.scene.set_blade_depth(self._depth_eq(load, a_loc))
         d.v_blade = xd_b
         d.f_coupling = f_c + act.resist_n
         scene.substep(f_c, -load)
+
+    def _depth_eq(self, load_n: float, a_loc: float) -> float:
+        """Indentation psi (m) where the tool's vertical spring (compliance c, held at depth d by
+        the robot), the glass load on the blade (vacuum / peel load + the glass's weight) and
+        the pad's contact stiffness (``PAD_CONTACT_POINTS`` x k x a) balance:
+        ``psi = (d + c (load + m_s g)) / (1 + c k_pad a)``; c = 0 gives psi = d (rigid)."""
+        return (self._d_tool + self._c_tool * (load_n + self._w_sub)) / (
+            1.0 + self._c_tool * self._k_pad * a_loc)
 
     def _measure_true(self, resist_n: float) -> tuple[float, float, float]:
         """True (F_RX, F_RZ) in N: engine contact forces + Eq. 21-22 (+ effect resistance),

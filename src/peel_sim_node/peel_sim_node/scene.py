@@ -6,9 +6,13 @@ Geometry (engine units are SI: m, kg, s, N; x is the peel direction, z up):
   ``contactStiffness`` and ``contactDamping`` are the task's P_k values; friction and stiffness
   are scaled by the local adhesion factor of the ``tile_length`` patch under the blade (vacuum
   patches drawn per task), switched as the blade crosses patches.
-* **blade**: a multibody with a fixed base and one prismatic joint along x. Its z is held by the
-  position-controlled robot ``press_depth`` into the pad (section 2: pressed down from B on), so
-  the pad's soft contact carries ``stiffness * press_depth`` of normal load. The robot drives the
+* **blade**: a multibody with a fixed base and one prismatic joint along x. The robot holds the
+  tool ``press_depth`` into the pad (section 2: pressed down from B on); the thin wedge blade and
+  the wrist are a vertical spring (``tool_compliance_z_mm_per_n``), so the blade's actual
+  indentation psi is the quasi-static equilibrium of that spring, the pad's soft contact and the
+  vertical load of the glass on the blade (:meth:`set_blade_depth`, computed by the env every
+  engine step): a heavier load presses the blade deeper and the pad's reaction, and with it the
+  pad friction, grows. With zero compliance psi = ``press_depth`` (a rigid tool). The robot drives the
   blade through a compliance (tool + sensor): a spring-damper between the commanded carriage
   position and the blade, applied as the joint force. The blade's pad friction switches between
   the static (``static_friction_ratio`` x) and kinetic level with the blade's slip state, so
@@ -52,6 +56,8 @@ class Scene:
         pad_len = sc.n_tiles * tl
         pshape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[pad_len / 2, 0.02, 0.5 * MM],
                                          physicsClientId=c)
+        self._pad_x = self.tile_x0 + pad_len / 2
+        self._pad_top = 0.0  # height of the pad's top face (moves with the indentation), m
         self.pad = pb.createMultiBody(
             baseMass=0.0, baseCollisionShapeIndex=pshape,
             basePosition=[self.tile_x0 + pad_len / 2, 0.0, -0.5 * MM], physicsClientId=c,
@@ -63,7 +69,14 @@ class Scene:
         self.blade_half = [bl / 2, 0.005, sc.blade_thickness_mm * MM / 2]
         bshape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=self.blade_half,
                                          physicsClientId=c)
-        z_blade = self.blade_half[2] - sc.press_depth_mm * MM
+        # initial indentation: the tool spring's equilibrium on the pad at the simulator's mean
+        # stiffness without load (= press_depth for a rigid tool); the env moves the blade to
+        # the load's equilibrium every engine step (set_blade_depth)
+        c_tool = sc.tool_compliance_z_mm_per_n * MM
+        k_mean = 0.5 * (cfg.randomization.stiffness_low + cfg.randomization.stiffness_high)
+        self.depth0 = sc.press_depth_mm * MM / (1.0 + c_tool * 4.0 * k_mean)
+        z_blade = self.blade_half[2] - self.depth0
+        self._depth: float | None = self.depth0  # current indentation psi, m
         self.blade = pb.createMultiBody(
             baseMass=0.0, basePosition=[0.0, 0.0, z_blade],
             linkMasses=[sc.blade_mass_kg], linkCollisionShapeIndices=[bshape],
@@ -101,6 +114,7 @@ class Scene:
         self._blade_mu = None
         self.set_blade_friction(1.0)
         self._state_id: int | None = None
+        self._saved_depth: dict[int, tuple[float | None, float]] = {}
 
     # ----------------------------------------------------------------------------- params
     def apply_params(self, friction: float, stiffness: float, damping: float) -> None:
@@ -124,6 +138,18 @@ class Scene:
             pb.changeDynamics(self.blade, 0, lateralFriction=mu, physicsClientId=self.client)
             self._blade_mu = mu
 
+    def set_blade_depth(self, psi_m: float) -> None:
+        """Set the blade's indentation into the pad to ``psi_m`` (m). The blade and the glass
+        riding on it keep their heights; the static pad body is placed so that its top face is
+        ``psi_m`` above the blade's underside (the same relative geometry, without moving the
+        bodies the blade-glass contact lives on)."""
+        if psi_m != self._depth:
+            self._pad_top = psi_m - self.depth0
+            pb.resetBasePositionAndOrientation(
+                self.pad, [self._pad_x, 0.0, -0.5 * MM + self._pad_top], [0.0, 0.0, 0.0, 1.0],
+                physicsClientId=self.client)
+            self._depth = psi_m
+
     # ----------------------------------------------------------------------------- state
     def reset_bodies(self) -> None:
         """Blade at x = 0 (point C), substrate resting on it, all at rest."""
@@ -139,16 +165,21 @@ class Scene:
     def substrate_lift(self) -> float:
         """Height of the substrate's underside above the pad top, m."""
         z = pb.getJointState(self.substrate, 0, physicsClientId=self.client)[0]
-        return self.z_sub0 + z - 0.25 * MM
+        return self.z_sub0 + z - 0.25 * MM - self._pad_top
 
     def save(self) -> int:
-        return pb.saveState(physicsClientId=self.client)
+        sid = pb.saveState(physicsClientId=self.client)
+        self._saved_depth[sid] = (self._depth, self._pad_top)
+        return sid
 
     def restore(self, state_id: int) -> None:
+        """Restore a saved engine state (the pad's pose with it, so psi's cache too)."""
         pb.restoreState(stateId=state_id, physicsClientId=self.client)
+        self._depth, self._pad_top = self._saved_depth[state_id]
 
     def remove_state(self, state_id: int) -> None:
         pb.removeState(state_id, physicsClientId=self.client)
+        self._saved_depth.pop(state_id, None)
 
     # ----------------------------------------------------------------------------- physics
     def substep(self, blade_force: float, substrate_force: float) -> None:
