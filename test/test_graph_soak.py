@@ -129,9 +129,13 @@ def test_soak_two_peels_reports_every_node(tmp_path: Path) -> None:
     assert [t["task"] for t in rep["per_task"]] == [1, 2]
     assert [t["outcome"] for t in rep["per_task"]] == [r["outcome"] for r in summary["results"]]
     assert rep["safety_stops"] == sum(r["outcome"] == "safety_stop" for r in summary["results"])
+    every = {"peel_graph", "peel_sim_node", "peel_planner_node", "model_learner_node"}
+    # the periodic samples (every --interval s while the graph runs) see every node; a task
+    # line may be read after the graph has begun stopping its nodes on a loaded machine, so the
+    # per-task samples hold a subset of them
+    assert set().union(*(s["rss_mb"] for s in rep["samples"])) == every
     for t in rep["per_task"]:
-        assert set(t["rss_mb"]) == {"peel_graph", "peel_sim_node", "peel_planner_node",
-                                    "model_learner_node"}
+        assert set(t["rss_mb"]) <= every and "peel_graph" in t["rss_mb"]
         assert all(mb > 30 for mb in t["rss_mb"].values())  # python + numpy at least
     assert len(rep["samples"]) >= 2 and rep["samples"][-1]["t_s"] <= time.monotonic() - t0
     for name, node in rep["nodes"].items():
