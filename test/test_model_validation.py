@@ -44,3 +44,28 @@ def test_model_versions_unique_and_monotonic_whoever_swaps(tmp_path) -> None:
     assert (a.producer, b.producer, b.task) == (None, "model_learner_node", 1)
     assert ledger.update_for("model_learner_node", 1) == b and b.sha256 != a.sha256
     assert ModelRecord.from_json(b.to_json()) == b
+
+
+def test_update_wait_goes_by_identity_never_by_number() -> None:
+    """The simulator's and the launcher's wait for the learner's update after task k: an
+    outside model, another producer's report or the learner's own word without the planner's
+    record do not end it; the planner's record of the update or a failure report do."""
+    from peel_msgs_py.modelinfo import FAILED, SWAPPED, ModelRecord, UpdateReport, UpdateWait
+
+    learner = "/model_learner_node"
+    wait = UpdateWait(learner)
+    wait.add_record(ModelRecord(0, "a" * 64, "/m/init.safetensors"))
+    assert wait.outcome(1) is None
+    wait.add_record(ModelRecord(1, "b" * 64, "/m/tuned_by_hand.safetensors"))  # outside
+    wait.add_report(UpdateReport("/another_learner", 1, FAILED, "boom"))
+    wait.add_report(UpdateReport(learner, 1, SWAPPED, sha256="c" * 64))  # record still on its way
+    assert wait.outcome(1) is None
+    wait.add_record(ModelRecord(2, "c" * 64, "/m/model_v0001.safetensors", learner, 1))
+    done = wait.outcome(1)
+    assert done is not None and (done.status, done.version, done.failed) == (SWAPPED, 2, False)
+    wait.add_report(UpdateReport(learner, 2, FAILED, "probe batch: non-finite forces"))
+    failed = wait.outcome(2)
+    assert failed is not None and failed.failed and failed.version is None
+    assert "non-finite" in failed.reason and wait.latest is not None and wait.latest.version == 2
+    assert UpdateReport.from_json(failed.to_json()) == failed
+    assert ModelRecord.from_json(wait.latest.to_json()) == wait.latest

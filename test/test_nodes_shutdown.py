@@ -1,9 +1,10 @@
 """A node stops on one signal with a clean exit and no traceback, even when a second signal
 arrives during its teardown (docs/graph.md, "Failure handling"); ``peel graph`` sends each
-node one SIGINT (test_graph_run.py checks every log of its runs)."""
+node one SIGINT (counted below; test_graph_run.py checks every log of its runs)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -38,3 +39,37 @@ def test_signal_stops_the_node_cleanly(module: str, signals: tuple[int, ...],
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, out
     assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
+
+
+# A stand-in child: counts the SIGINTs it gets until one second after the first, then exits 0.
+COUNTER = """
+import signal, sys, time
+n = []
+signal.signal(signal.SIGINT, lambda s, f: n.append(s))
+print("ready", flush=True)
+end = time.monotonic() + 120
+while not n and time.monotonic() < end:
+    time.sleep(0.01)
+time.sleep(1.0)
+open(sys.argv[1], "w").write(str(len(n)))
+"""
+
+
+def test_the_launcher_sends_each_node_one_signal(tmp_path) -> None:
+    """``peel graph``'s stop (:func:`peel_bringup.graph.tear_down`): one SIGINT per process,
+    recorder included; no second one while the node is still shutting down."""
+    from peel_bringup.graph import RECORDER, Child, tear_down
+
+    names = ("peel_sim_node", "peel_planner_node", "model_learner_node", RECORDER)
+    children = [Child(n, [sys.executable, "-c", COUNTER, str(tmp_path / f"{n}.count")],
+                      tmp_path / f"{n}.log") for n in names]
+    for child in children:
+        child.start(dict(os.environ), verbose=False)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not all(
+            c.log.is_file() and "ready" in c.log.read_text() for c in children):
+        time.sleep(0.05)
+    tear_down(children, timeout_s=60)
+    for child in children:
+        assert child.poll() == 0, (child.name, child.log.read_text())
+        assert (tmp_path / f"{child.name}.count").read_text() == "1", child.name

@@ -3,7 +3,9 @@
 A real planner process on rclpy; this test process is the client (rclpy, the standard
 ``rcl_interfaces/srv/SetParameters``). Corrupted,
 truncated, mismatched, non-finite and pickled weights are refused with a reason and the running
-model (``/peel/model_version``) stays; a good checkpoint is accepted and its version published.
+model (``/peel/model_version``) stays; a good checkpoint is accepted and its version published:
+the planner's next version, whatever the file is called (``model_v0007`` does not make it 7),
+with the model's identity on ``/peel/model_info``.
 """
 
 from __future__ import annotations
@@ -25,12 +27,7 @@ from safetensors.torch import load_file, save_file
 from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
 from model_learner_node.config import ModelConfig
 from model_learner_node.predictor import ForcePredictor
-from peel_planner_node.model_check import validate_model, version_of
-
-
-def test_version_of_names() -> None:
-    assert version_of(Path("/x/model_v0012.safetensors"), 3) == 12
-    assert version_of(Path("/x/pretrained.safetensors"), 3) == 3
+from peel_planner_node.model_check import validate_model
 
 
 def _model(tmp: Path) -> Path:
@@ -114,15 +111,18 @@ def test_swap_service_refuses_with_reason_and_keeps_model(
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
     from rclpy.node import Node
-    from std_msgs.msg import Int64
+    from std_msgs.msg import Int64, String
 
     from peel_msgs_py import topics
 
     rclpy.init(args=None)
     node = Node("swap_test")
     versions: list[int] = []
+    infos: list[dict] = []
     node.create_subscription(Int64, topics.MODEL_VERSION, lambda m: versions.append(int(m.data)),
                              topics.qos_profile(topics.MODEL_VERSION, subscriber=True))
+    node.create_subscription(String, topics.MODEL_INFO, lambda m: infos.append(json.loads(m.data)),
+                             topics.qos_profile(topics.MODEL_INFO, subscriber=True))
     client = node.create_client(SetParameters, "/peel_planner_node/set_parameters")
 
     def spin_until(cond, timeout: float) -> bool:
@@ -149,8 +149,12 @@ def test_swap_service_refuses_with_reason_and_keeps_model(
             assert "refused" in reason and word.lower() in reason.lower(), (name, reason)
         ok, reason = swap(good)
         assert ok, reason
-        assert spin_until(lambda: versions[-1:] == [7], 30), versions
-        assert versions == [0, 7]  # nothing changed on the refusals
+        assert spin_until(lambda: versions[-1:] == [1] and len(infos) == 2, 30), versions
+        assert versions == [0, 1]  # nothing changed on the refusals; no number from the name
+        sha = json.loads(good.with_suffix(".json").read_text())["safetensors_sha256"]
+        assert infos[1] == {"version": 1, "sha256": sha, "path": str(good), "producer": None,
+                            "task": None}
+        assert infos[0]["version"] == 0 and infos[0]["path"] == str(_model(tmp_path))
         assert proc.poll() is None  # the planner survived every bad file
     finally:
         node.destroy_node()

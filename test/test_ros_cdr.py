@@ -43,7 +43,9 @@ def _examples() -> dict[str, object]:
     from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
     from rcl_interfaces.msg import SetParametersResult
     from rosgraph_msgs.msg import Clock
-    from std_msgs.msg import Int64
+    from std_msgs.msg import Int64, String
+
+    from peel_msgs_py.modelinfo import FAILED, ModelRecord, UpdateReport
 
     wrench = _stamped(WrenchStamped)
     wrench.wrench.force.x, wrench.wrench.force.z, wrench.wrench.torque.y = 12.5, -3.25, 1e-9
@@ -57,6 +59,9 @@ def _examples() -> dict[str, object]:
         "geometry_msgs/msg/PoseStamped": pose,
         "std_msgs/msg/Float64MultiArray": _trajectory_msg(),
         "std_msgs/msg/Int64": Int64(data=-(2**40)),
+        "std_msgs/msg/String": String(data=ModelRecord(
+            3, "ab" * 32, "/tmp/model_v0002.safetensors", "/model_learner_node", 2).to_json()
+            + UpdateReport("/model_learner_node", 4, FAILED, "non-finite: äö").to_json()),
         "rosgraph_msgs/msg/Clock": Clock(clock=stamp(5_000_000_001)),
         "rcl_interfaces/msg/SetParametersResult": SetParametersResult(
             successful=False, reason="model swap refused: probe batch"),

@@ -16,6 +16,7 @@ never updated and needs no code.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -76,6 +77,16 @@ class HistoryRetrainer:
         self.slice_len = max(self.cfg.slice_len, self.h + 1)
         self.version = 0
         self.n_updates = 0
+
+    def state(self) -> dict[str, Any]:
+        """A copy of the weights (each update starts a fresh optimiser); see :meth:`restore`."""
+        return {"model": copy.deepcopy(self.model.state_dict()), "n_updates": self.n_updates,
+                "version": self.version}
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Back to a :meth:`state` taken earlier."""
+        self.model.load_state_dict(state["model"])
+        self.n_updates, self.version = state["n_updates"], state["version"]
 
     def _loss(self, batch: Windows) -> Tensor:
         return self.loss_fn(self.model(batch.hist, batch.v_next), batch)

@@ -34,6 +34,7 @@ A trajectory without a recorded cost is scored by its completion time (``-t_cpl`
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -327,6 +328,23 @@ class MetaLearner:
                 for k, v in g.items():
                     named[k].sub_(self.cfg.beta * scale * v)
         return norm
+
+    def state(self) -> dict[str, Any]:
+        """A copy of theta and of the meta-optimiser's state; :meth:`restore` brings them back
+        (the learner node undoes an update whose model predicts non-finite forces)."""
+        return {"model": copy.deepcopy(self.model.state_dict()),
+                "opt": copy.deepcopy(self._opt.state_dict()) if self._opt is not None else None,
+                "n_updates": self.n_updates, "version": self.version}
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Back to a :meth:`state` taken earlier."""
+        self.model.load_state_dict(state["model"])
+        if state["opt"] is None:
+            self._opt = None
+        elif self._opt is not None:
+            self._opt.load_state_dict(state["opt"])
+        self.n_updates, self.version = state["n_updates"], state["version"]
+        self._pools.clear()
 
     def update(self, new_traj: Trajectory, pool: Any = None) -> dict[str, Any]:
         """Run Algorithm 1 once with the newest trajectory and the replay pool.

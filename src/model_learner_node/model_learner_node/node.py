@@ -2,10 +2,14 @@
 
 Subscribes ``/peel/trajectory`` (trajectory codec); after each task a worker thread runs
 Algorithm 1 (:class:`~model_learner_node.online.OnlineLearner`: replay pool, MAML Eq. 26-27 or
-baseline 2, versioned safetensors written atomically), so the callbacks never wait for it; then
-asks the planner to swap the new model in by setting its ``model.path`` through the planner's
-standard ``SetParameters`` service. A refused swap is logged with the planner's reason; the
-learner keeps training its own copy.
+baseline 2, checked for finite outputs, safetensors written atomically with the node's name and
+the task in their meta), so the callbacks never wait for it; then asks the planner to swap the
+new model in by setting its ``model.path`` through the planner's standard ``SetParameters``
+service. Every task's update ends in one report on ``/peel/model_update``
+(:class:`~peel_msgs_py.modelinfo.UpdateReport`: swapped, refused with the planner's reason,
+failed, skipped), so the simulator and ``peel graph`` go on at once instead of waiting for a
+model that will not come. A starting model with non-finite outputs is refused (exit 2); after a
+failed or refused update the learner keeps training its own last good weights.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import queue
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -21,15 +26,16 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.modelinfo import FAILED, OFFERED, REFUSED, SWAPPED, UpdateReport
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
 
-from .online import OnlineLearner
+from .online import OnlineLearner, task_number
 from .parameters import NODE_NAME, SPECS
 
 
@@ -40,11 +46,16 @@ class LearnerNode(NamedRefusals, Node):
         super().__init__(NODE_NAME)
         values = declare(self, SPECS)
         torch.set_num_threads(values["node.threads"])
-        self.learner = OnlineLearner(values)
+        try:
+            self.learner = OnlineLearner(values, producer=self.get_fully_qualified_name())
+        except PeelError as exc:
+            raise PeelError(f"parameter 'node.init_model': {exc}") from None
         self.timeout_s = float(values["node.swap_timeout_s"])
         service = values["node.planner_node"].rstrip("/") + "/set_parameters"
         self.client = self.create_client(SetParameters, service)
         self.queue: queue.Queue[Trajectory | None] = queue.Queue()
+        self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
+                                                topics.qos_profile(topics.MODEL_UPDATE))
         self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
                                  topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
@@ -58,21 +69,29 @@ class LearnerNode(NamedRefusals, Node):
             self.get_logger().error(f"ignoring a malformed {topics.TRAJECTORY} message: {exc}")
 
     def work(self) -> None:
-        """Worker thread: one update per finished task, then the swap request."""
+        """Worker thread: one update per finished task, the swap request, the report."""
         while (traj := self.queue.get()) is not None:
             try:
-                path = self.learner.learn(traj, self.get_logger())
-            except Exception as exc:  # keep the node alive; the planner keeps its model
-                self.get_logger().error(f"update after task {self.learner.n_tasks} failed: "
+                report = self.learner.learn(traj, self.get_logger())
+            except Exception as exc:  # e.g. the checkpoint could not be written
+                task = task_number(traj, self.learner.n_tasks)
+                self.get_logger().error(f"update after task {task} failed: "
                                         f"{type(exc).__name__}: {exc}")
-                continue
-            if path is None:
-                continue
-            ok, reason = self.request_swap(path)
-            if ok:
-                self.get_logger().info(f"planner swapped to v{self.learner.version}")
-            else:
-                self.get_logger().warn(f"planner refused v{self.learner.version}: {reason}")
+                report = UpdateReport(self.learner.producer, task, FAILED,
+                                      f"{type(exc).__name__}: {exc}")
+            if report.status == OFFERED:
+                report = self.offer(report)
+            self.pub_update.publish(String(data=report.to_json()))
+
+    def offer(self, report: UpdateReport) -> UpdateReport:
+        """Ask the planner to swap the update in; ``swapped`` or ``refused`` with its reason."""
+        name = Path(str(report.path)).name
+        ok, reason = self.request_swap(Path(str(report.path)))
+        if ok:
+            self.get_logger().info(f"task {report.task}: the planner swapped in {name}")
+            return replace(report, status=SWAPPED)
+        self.get_logger().warn(f"task {report.task}: the planner refused {name}: {reason}")
+        return replace(report, status=REFUSED, reason=reason)
 
     def request_swap(self, path: Path) -> tuple[bool, str]:
         """Set the planner's ``model.path``; wait (in this worker thread) for the answer."""

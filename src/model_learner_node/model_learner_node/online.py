@@ -5,7 +5,16 @@ Algorithm 1 (:class:`~model_learner_node.maml.MetaLearner`, Eq. 26-27) or baseli
 (:class:`~model_learner_node.baselines2.HistoryRetrainer`) on each finished task and writes the
 updated weights atomically as ``out_dir/model_vNNNN.safetensors`` (+ JSON;
 :func:`~model_learner_node.checkpoint.save_checkpoint`: temporary file + ``os.replace``,
-safetensors only, never a pickle).
+safetensors only, never a pickle). ``NNNN`` only numbers the learner's files; the version the
+planner plans it under is the planner's to give (:mod:`model_learner_node.versions`), and each
+file's meta names it instead: ``producer`` (the learner node) and ``task`` (1-based)
+(:func:`~model_learner_node.versions.update_meta`).
+
+A model is only offered when it predicts finite forces on the probe batch
+(:func:`~model_learner_node.validation.check_finite_outputs`, the planner's own swap check): the
+starting model is refused at construction (:class:`~peel_msgs_py.errors.CheckpointError`, so
+the node exits 2), and an update that raises or fails the probe is reported ``failed`` with the
+learner back on its last good weights (and meta-optimiser state).
 """
 
 from __future__ import annotations
@@ -16,12 +25,18 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.modelinfo import FAILED, OFFERED, SKIPPED, UpdateReport
 from peel_msgs_py.trajectory import Trajectory
 
-from .checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
+from .checkpoint import load_checkpoint, read_checkpoint_config, save_checkpoint, shipped_checkpoint
 from .replay import ReplayPool
+from .validation import check_finite_outputs
+from .versions import update_meta
 
-_VERSION_RE = re.compile(r"model_v(\d+)")
+_NUMBER_RE = re.compile(r"model_v(\d+)")
 
 
 def json_safe(obj: Any) -> Any:
@@ -39,20 +54,34 @@ def json_safe(obj: Any) -> Any:
     return json.loads(json.dumps(obj, default=str))
 
 
-def model_file(out_dir: Path, version: int) -> Path:
+def model_file(out_dir: Path, number: int) -> Path:
     """``out_dir/model_vNNNN.safetensors``."""
-    return out_dir / f"model_v{version:04d}.safetensors"
+    return out_dir / f"model_v{number:04d}.safetensors"
+
+
+def task_number(traj: Trajectory, fallback: int) -> int:
+    """1-based number of the task ``traj`` finished: ``meta.task_index + 1`` as the simulator
+    set it (the number it waits for), else ``fallback`` (the count of trajectories seen)."""
+    idx = traj.meta.get("task_index")
+    return idx + 1 if isinstance(idx, int) and not isinstance(idx, bool) and idx >= 0 else fallback
+
+
+def probe_rows(traj: Trajectory) -> np.ndarray:
+    """The measured rows (q_mm, v_mmps, fx_N, fz_N) of ``traj`` for the probe batch."""
+    return np.stack([traj.q, traj.v, traj.fx, traj.fz], axis=1).astype(np.float64)
 
 
 class OnlineLearner:
-    """Replay pool + Algorithm 1 (or baseline 2) + versioned checkpoints, from node values."""
+    """Replay pool + Algorithm 1 (or baseline 2) + checked, named checkpoints (module doc)."""
 
-    def __init__(self, values: dict[str, Any]) -> None:
+    def __init__(self, values: dict[str, Any], producer: str = "model_learner_node") -> None:
         init = values["node.init_model"]
         self.init_path = shipped_checkpoint() if not init else Path(init)
         self.predictor = load_checkpoint(self.init_path)
-        m = _VERSION_RE.search(self.init_path.name)
-        self.version = int(m.group(1)) if m else 0
+        check_finite_outputs(self.predictor, what=f"the starting model {self.init_path.name}")
+        self.producer = producer
+        m = _NUMBER_RE.search(self.init_path.name)
+        self.number = int(m.group(1)) if m else 0  # of the last file written
         self.method = values["node.method"]
         if self.method == "maml":
             from .maml import MamlConfig, MetaLearner
@@ -68,21 +97,44 @@ class OnlineLearner:
         self.n_tasks = 0
 
     def describe(self) -> str:
-        return (f"{self.method} from {self.init_path.name} (v{self.version}), "
-                f"writing to {self.out_dir}")
+        return f"{self.method} from {self.init_path.name}, writing to {self.out_dir}"
 
-    def learn(self, traj: Trajectory, log: Any) -> Path | None:
-        """One update on a finished task; the new checkpoint, or None when nothing changed."""
+    def learn(self, traj: Trajectory, log: Any) -> UpdateReport:
+        """One update on a finished task: ``offered`` with the checkpoint written, ``failed``
+        (weights restored) or ``skipped`` (nothing to learn from)."""
         self.n_tasks += 1
-        report = self.learner.update(traj, self.pool)
-        self.pool.add(traj)
+        task = task_number(traj, self.n_tasks)
+        saved = self.learner.state()
+        try:
+            report = self.learner.update(traj, self.pool)
+            if report.get("updated", True):
+                what = f"the update after task {task}"
+                check_finite_outputs(self.predictor, what=what)
+                check_finite_outputs(self.predictor, probe_rows(traj), what=what)
+        except Exception as exc:  # Algorithm 1 raised, or its model is unusable
+            self.learner.restore(saved)
+            reason = str(exc) if isinstance(exc, PeelError) else f"{type(exc).__name__}: {exc}"
+            log.error(f"update after task {task} failed: {reason}; back on the last good weights")
+            return UpdateReport(self.producer, task, FAILED, reason)
+        finally:
+            self.keep(traj, log)
         if not report.get("updated", True):
-            log.warn(f"task {self.n_tasks}: no update ({report.get('reason', '')})")
-            return None
-        self.version += 1
-        meta = json_safe({"version": self.version, "task": self.n_tasks,
+            reason = str(report.get("reason", ""))
+            log.warn(f"task {task}: no update ({reason})")
+            return UpdateReport(self.producer, task, SKIPPED, reason)
+        self.number += 1
+        meta = json_safe({**update_meta(self.producer, task), "file_number": self.number,
                           "task_meta": traj.meta, "update": report})
-        path = save_checkpoint(model_file(self.out_dir, self.version), self.predictor, meta)
-        log.info(f"task {self.n_tasks}: Algorithm 1 done in {report.get('update_s', 0):.2f} s, "
+        path = save_checkpoint(model_file(self.out_dir, self.number), self.predictor, meta)
+        log.info(f"task {task}: Algorithm 1 done in {report.get('update_s', 0):.2f} s, "
                  f"wrote {path.name}")
-        return path
+        return UpdateReport(self.producer, task, OFFERED, sha256=str(
+            read_checkpoint_config(path)["safetensors_sha256"]), path=str(path.resolve()))
+
+    def keep(self, traj: Trajectory, log: Any) -> None:
+        """Add ``traj`` to the replay pool unless a measured value in it is not finite."""
+        cols = (traj.t, traj.q, traj.v, traj.u, traj.fx, traj.fz)
+        if all(bool(np.isfinite(np.asarray(c, dtype=np.float64)).all()) for c in cols):
+            self.pool.add(traj)
+        else:
+            log.warn(f"task {self.n_tasks}: non-finite samples; not kept in the replay pool")

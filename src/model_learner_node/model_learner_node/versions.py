@@ -8,7 +8,8 @@ the wrong model. Here the planner is the only allocator:
 * :class:`ModelLedger` gives the starting model version 0 and every *accepted* swap the next
   integer, whatever the file is called; refused swaps take no number. So versions are unique
   and strictly increasing for the planner's lifetime.
-* Each :class:`ModelRecord` carries the model's identity: the SHA-256 of its safetensors file
+* Each :class:`~peel_msgs_py.modelinfo.ModelRecord` (shared with the simulator, which may not
+  import this package) carries the model's identity: the SHA-256 of its safetensors file
   (recorded in its checkpoint JSON by :func:`~model_learner_node.checkpoint.save_checkpoint`)
   and, for an update of Algorithm 1, the ``producer`` and ``task`` written into the checkpoint
   meta by :func:`update_meta`. An outside model has no producer.
@@ -17,19 +18,23 @@ the wrong model. Here the planner is the only allocator:
 
 How the nodes use it (ROS-free here; the nodes are thin adapters): the planner keeps a ledger,
 ``accept``\\ s a model after :func:`~model_learner_node.validation.check_finite_outputs` passed,
-publishes ``record.version`` on ``/peel/model_version`` and ``record.to_json()`` on a latched
-model-info topic; the learner writes ``update_meta(node, task)`` into each checkpoint's meta;
-the simulator waits for a record with ``is_update(producer, task)``.
+publishes ``record.version`` on ``/peel/model_version`` and ``record.to_json()`` on the latched
+``/peel/model_info``; the learner writes ``update_meta(node, task)`` into each checkpoint's meta;
+the simulator and ``peel graph`` wait for a record with ``is_update(producer, task)``
+(:class:`peel_msgs_py.modelinfo.UpdateWait`).
 """
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from peel_msgs_py.modelinfo import ModelRecord
+
 from .checkpoint import read_checkpoint_config
+
+__all__ = ["PRODUCER_KEY", "TASK_KEY", "ModelLedger", "ModelRecord", "identify", "update_meta"]
 
 #: Meta keys of a checkpoint written by Algorithm 1's node.
 PRODUCER_KEY = "producer"
@@ -39,28 +44,6 @@ TASK_KEY = "task"
 def update_meta(producer: str, task: int, **extra: Any) -> dict[str, Any]:
     """Checkpoint meta that names an update: who produced it, after which task (1-based)."""
     return {PRODUCER_KEY: producer, TASK_KEY: int(task), **extra}
-
-
-@dataclass(frozen=True)
-class ModelRecord:
-    """One model the planner planned with: its version and identity."""
-
-    version: int
-    sha256: str
-    path: str
-    producer: str | None = None
-    task: int | None = None
-
-    def is_update(self, producer: str, task: int) -> bool:
-        """Whether this is ``producer``'s update after ``task``."""
-        return self.producer == producer and self.task == task
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
-
-    @classmethod
-    def from_json(cls, text: str) -> ModelRecord:
-        return cls(**json.loads(text))
 
 
 def identify(path: str | Path) -> tuple[str, str | None, int | None]:
@@ -92,9 +75,11 @@ class ModelLedger:
     def latest(self) -> ModelRecord:
         return self.records[-1]
 
-    def accept(self, path: str | Path) -> ModelRecord:
-        """Record an accepted model; returns it with the next version."""
-        sha, producer, task = identify(path)
+    def accept(self, path: str | Path,
+               identity: tuple[str, str | None, int | None] | None = None) -> ModelRecord:
+        """Record an accepted model; returns it with the next version. ``identity``: what
+        :func:`identify` returned for ``path`` when the caller read it already."""
+        sha, producer, task = identity if identity is not None else identify(path)
         version = self.records[-1].version + 1 if self.records else 0
         rec = ModelRecord(version, sha, str(path), producer, task)
         self.records.append(rec)

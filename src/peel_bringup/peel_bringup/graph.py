@@ -11,18 +11,23 @@ Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and 
 would get them. ``--plant nachi`` starts the bridge to the Nachi robot controller
 (``peel_nachi_bridge``, docs/nachi.md) at ``--nachi-host:--nachi-port`` in the simulator
 bridge's place; it publishes the same topics, so nothing else changes. Every node's parameters
-are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node
-that refuses its parameters anyway exits 2, and so does the graph. The launcher itself joins the graph
-as a listener (``peel_graph``: ``/peel/trajectory``, ``/peel/model_version``) and prints one line
-per finished task: outcome, T_cpl, J (Eq. 3, :func:`peel_planner_node.cost.episode_cost`) and the
-model version the task ran with.
+are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
+refuses its parameters or files anyway (a model with non-finite outputs, too) exits 2, and so
+does the graph. The launcher itself joins the graph as a listener (``peel_graph``:
+``/peel/trajectory``, ``/peel/model_version``, ``/peel/model_info``, ``/peel/model_update``) and
+prints one line per finished task: outcome, T_cpl, J (Eq. 3,
+:func:`peel_planner_node.cost.episode_cost`) and the model version the task ran with; and one
+line per update of the learner: swapped in (as which version), refused, failed or skipped, as
+soon as it is known.
 
-It stops cleanly after K tasks (after the learner's last swap, ``graph.final_model_wait_s``) or
-on Ctrl-C: SIGINT to every node, the recorder last so the bag is closed and readable; exit
-status 0, or 130 after Ctrl-C. A node that dies makes it stop the others and exit 1 naming the
-node (``--keep-going``: a dead learner or recorder is reported but the tasks go on, the planner
-keeping its last good model; the exit status is still 1). Node output goes to
-``OUT/logs/<node>.log``; ``OUT/summary.json`` holds the per-task results.
+It stops cleanly after K tasks (after the outcome of the learner's last update, known by its
+identity, or ``graph.final_model_wait_s``) or on Ctrl-C: SIGINT to every node, the recorder last
+so the bag is closed and readable. Exit status (:data:`EXIT_STATUS`): 0 all well; 1 a node died
+(named; ``--keep-going``: a dead learner or recorder is reported but the tasks go on, the
+planner keeping its last good model); 2 bad input (here or in a node); 3 every node ran to the
+end but at least one update of the learner failed or was refused (the planner kept its model);
+130 Ctrl-C. Node output goes to ``OUT/logs/<node>.log``; ``OUT/summary.json`` holds the
+per-task results, each with its update.
 """
 
 from __future__ import annotations
@@ -57,6 +62,14 @@ RECORDER = "recorder"
 OPTIONAL = ("model_learner_node", RECORDER)
 #: Exit status of a node (and of the graph) refusing bad input, e.g. a parameter.
 BAD_INPUT = 2
+#: Exit status of a graph whose nodes all ran but where an update of the learner failed.
+UPDATE_FAILED = 3
+#: Every exit status of ``peel graph`` (module docstring; docs/graph.md).
+EXIT_STATUS = {0: "ok", 1: "a node died", BAD_INPUT: "bad input",
+               UPDATE_FAILED: "a model update failed", 130: "interrupted"}
+#: The learner whose updates the launcher (and the simulator: its ``node.learner_node``) waits
+#: for, by its identity on ``/peel/model_info`` (the learner's fully qualified node name).
+LEARNER = "/model_learner_node"
 
 
 def graph_params(override: str | None) -> dict[str, Any]:
@@ -124,7 +137,8 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
         bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers, **(link or {})}}
     else:
         bridge = {"peel_sim_node": {"use_sim_time": True, "node.source": plant,
-                                    "node.tasks": tasks, "node.seed": seed, **readers}}
+                                    "node.tasks": tasks, "node.seed": seed, **readers,
+                                    "node.learner_node": LEARNER}}
     return {
         **bridge,
         "peel_planner_node": {"use_sim_time": True, "node.seed": seed,
@@ -357,12 +371,10 @@ class Watch:
     dead: list[str] = field(default_factory=list)
     status: int = 0
     finished_at: float | None = None
-    start_version: int | None = None
     shown_version: int | None = None
+    failed_updates: list[int] = field(default_factory=list)
 
     def report_tasks(self, mon: Any) -> None:
-        if self.start_version is None and mon.version is not None:
-            self.start_version = mon.version
         if mon.version is not None and mon.version != self.shown_version:
             self.shown_version = mon.version
             print(f"peel graph: planner model v{mon.version} active", flush=True)
@@ -373,8 +385,23 @@ class Watch:
                                  "t_cpl_s": traj.t_cpl, "J": j, "sum_fx_n": traj.sum_fx,
                                  "sum_fz_n": traj.sum_fz,
                                  "model_version": traj.meta.get("model_version"),
-                                 "samples": len(traj)})
+                                 "samples": len(traj), "update": None})
             print(task_line(len(self.results), self.run.tasks, traj, j), flush=True)
+        self.report_updates(mon)
+
+    def report_updates(self, mon: Any) -> None:
+        """One line per update of the learner as soon as its outcome is known (swapped in as
+        version N, refused, failed, skipped); a failure is also kept for the exit status."""
+        for res in self.results:
+            if res["update"] is not None or (rep := mon.updates.outcome(res["task"])) is None:
+                continue
+            res["update"] = {"status": rep.status, "version": rep.version, "reason": rep.reason}
+            line = f"update {res['task']}/{self.run.tasks}: {rep.describe()}"
+            if rep.failed:
+                self.failed_updates.append(res["task"])
+                latest = mon.updates.latest
+                line += f"; the planner keeps model v{latest.version if latest else '?'}"
+            print(line, flush=True)
 
     def check_children(self, keep_going: bool) -> bool:
         """Report newly dead children; True when the graph must stop."""
@@ -394,20 +421,20 @@ class Watch:
         return bool(fatal)
 
     def finished(self, mon: Any) -> bool:
-        """All tasks reported and the learner's last swap in (or given up on)."""
+        """All tasks reported and the outcome of the learner's last update in (by its
+        identity: :class:`~peel_msgs_py.modelinfo.UpdateWait`), or given up on."""
         if len(self.results) < self.run.tasks:
             return False
         if self.finished_at is None:
             self.finished_at = time.monotonic()
         learner_alive = "model_learner_node" not in self.dead
-        want = (self.start_version or 0) + self.run.tasks
+        arrived = mon.updates.outcome(self.run.tasks) is not None
         wait_s = self.run.gp["graph.final_model_wait_s"]
-        arrived = (mon.version or 0) >= want
         if learner_alive and not arrived and time.monotonic() - self.finished_at < wait_s:
             return False
         if learner_alive and not arrived:
-            print(f"peel graph: warning: model version {want} did not arrive within "
-                  f"{wait_s:g} s", file=sys.stderr)
+            print(f"peel graph: warning: the learner's update after task {self.run.tasks} did "
+                  f"not arrive within {wait_s:g} s", file=sys.stderr)
         return True
 
 
@@ -454,7 +481,7 @@ def run_graph(args: argparse.Namespace) -> int:
 
     from .monitor_node import close_monitor, open_monitor
 
-    mon = open_monitor()
+    mon = open_monitor(LEARNER)
     stop = _Interrupt()
     stop.install()
     w = Watch(run, children)
@@ -465,6 +492,8 @@ def run_graph(args: argparse.Namespace) -> int:
         watch(w, mon, stop, args.keep_going)
         if w.dead:
             w.status = w.status or 1
+        if w.failed_updates:
+            w.status = w.status or UPDATE_FAILED
     finally:
         stop.restore()
         tear_down(children, run.gp["graph.stop_timeout_s"])
@@ -479,7 +508,8 @@ def write_summary(w: Watch, mon: Any) -> int:
         "plant": run.plant, "tasks": run.tasks, "seed": run.seed, "params": run.override,
         "bag": str(run.bag) if run.bag else None, "run_dir": str(run.run_dir),
         "model_versions": sorted(set(mon.versions)), "dead_nodes": w.dead,
-        "results": w.results, "status": w.status,
+        "failed_updates": w.failed_updates, "results": w.results, "status": w.status,
+        "status_meaning": EXIT_STATUS.get(w.status, "?"),
     }
     atomic_write_text(run.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     vers = ", ".join(f"v{v}" for v in summary["model_versions"]) or "none"
@@ -488,6 +518,10 @@ def write_summary(w: Watch, mon: Any) -> int:
     if w.dead:
         print(f"peel graph: error: node(s) died: {', '.join(w.dead)}", file=sys.stderr,
               flush=True)
+    if w.failed_updates:
+        print(f"peel graph: error: the learner's update failed after task(s) "
+              f"{', '.join(map(str, w.failed_updates))}; the planner kept its model "
+              f"(exit status {UPDATE_FAILED})", file=sys.stderr, flush=True)
     return w.status
 
 

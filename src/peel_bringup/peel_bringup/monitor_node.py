@@ -1,6 +1,7 @@
-"""The launcher's own node (``peel_graph``): it listens to ``/peel/trajectory`` and
-``/peel/model_version`` so that ``peel graph`` can print a line per finished task and know
-which model versions the planner took (docs/graph.md)."""
+"""The launcher's own node (``peel_graph``): it listens to ``/peel/trajectory``,
+``/peel/model_version``, ``/peel/model_info`` and ``/peel/model_update`` so that ``peel graph``
+can print a line per finished task and per update of the learner, and know which model versions
+the planner took (docs/graph.md)."""
 
 from __future__ import annotations
 
@@ -11,19 +12,22 @@ from typing import Any
 import rclpy
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import Float64MultiArray, Int64
+from std_msgs.msg import Float64MultiArray, Int64, String
 
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
 
 NODE_NAME = "peel_graph"
 
 
 class GraphMonitor(Node):
-    """Collects the finished trajectories and the model versions the planner announces."""
+    """Collects the finished trajectories, the model versions the planner announces and the
+    learner's updates (``updates``: the planner's records and the reports of ``learner``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, learner: str) -> None:
         super().__init__(NODE_NAME)
+        self.updates = UpdateWait(learner)
         self.trajectories: list[Any] = []
         self.version: int | None = None
         self.versions: list[int] = []
@@ -32,6 +36,10 @@ class GraphMonitor(Node):
         # a deeper reader history than the latched profile's 1: quick successive swaps all count
         self.create_subscription(Int64, topics.MODEL_VERSION, self.on_version, topics.qos_profile(
             dataclasses.replace(topics.topic(topics.MODEL_VERSION).sub_qos, depth=16)))
+        self.create_subscription(String, topics.MODEL_INFO, self.on_model_info,
+                                 topics.qos_profile(topics.MODEL_INFO, subscriber=True))
+        self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
+                                 topics.qos_profile(topics.MODEL_UPDATE, subscriber=True))
 
     def on_trajectory(self, msg: Float64MultiArray) -> None:
         try:
@@ -43,11 +51,24 @@ class GraphMonitor(Node):
         self.version = int(msg.data)
         self.versions.append(int(msg.data))
 
+    def on_model_info(self, msg: String) -> None:
+        try:
+            self.updates.add_record(ModelRecord.from_json(msg.data))
+        except PeelError as exc:
+            print(f"peel graph: warning: bad {topics.MODEL_INFO} message: {exc}", file=sys.stderr)
 
-def open_monitor() -> GraphMonitor:
+    def on_model_update(self, msg: String) -> None:
+        try:
+            self.updates.add_report(UpdateReport.from_json(msg.data))
+        except PeelError as exc:
+            print(f"peel graph: warning: bad {topics.MODEL_UPDATE} message: {exc}",
+                  file=sys.stderr)
+
+
+def open_monitor(learner: str) -> GraphMonitor:
     """rclpy up (the launcher keeps its own SIGINT handling) and the monitor node created."""
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
-    return GraphMonitor()
+    return GraphMonitor(learner)
 
 
 def spin_once(mon: GraphMonitor, timeout_s: float) -> None:

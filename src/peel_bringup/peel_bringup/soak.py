@@ -17,8 +17,8 @@ maximum, the growth after the warm-up and the least-squares slope over the tasks
 It counts the outcomes (``safety_stop`` = the 20 N prewarning ended a peel, section 4.2).
 Files: ``DIR/soak.json``, ``DIR/soak.md`` and ``DIR/soak_rss.png`` (RSS per node over tasks);
 the graph's own run folder (models, logs, summary) is ``DIR/graph``. The JSON summary is printed
-on stdout. Exit status: the graph's when it failed, else 1 when a task is missing, a peel ended in
-a safety stop or a node's memory is not flat, else 0.
+on stdout. Exit status: the graph's when it failed (3: a model update failed), else 1 when a task
+is missing, a peel ended in a safety stop or a node's memory is not flat, else 0.
 """
 
 from __future__ import annotations
@@ -228,6 +228,7 @@ def build_report(args: Any, status: int, watch: Watch, summary: dict[str, Any] |
         "outcomes": outcomes, "safety_stops": outcomes.get("safety_stop", 0),
         "model_versions": (summary or {}).get("model_versions"),
         "dead_nodes": (summary or {}).get("dead_nodes"),
+        "failed_updates": (summary or {}).get("failed_updates"),
         "warmup_tasks": args.warmup, "max_growth_mb": args.max_growth_mb,
         "memory_flat": None if any(f is None for f in flat) or not flat else all(flat),
         "nodes": nodes,
@@ -248,7 +249,8 @@ def _markdown(rep: dict[str, Any]) -> str:
         f"**safety stops: {rep['safety_stops']}**; graph exit status "
         f"{rep['graph_exit_status']}; model versions "
         f"{rep['model_versions'][0] if rep['model_versions'] else '-'} .. "
-        f"{rep['model_versions'][-1] if rep['model_versions'] else '-'}.", "",
+        f"{rep['model_versions'][-1] if rep['model_versions'] else '-'}; failed model updates "
+        f"after tasks: {', '.join(map(str, rep['failed_updates'] or [])) or 'none'}.", "",
         f"Memory (VmRSS, MB) per process; flat = grew by at most {rep['max_growth_mb']:g} MB "
         f"after task {rep['warmup_tasks']}:", "",
         "| process | task 1 | warm-up | last | max | growth after warm-up | slope MB/task | flat |",

@@ -15,8 +15,11 @@ Choices (docs/interfaces.md gives the reasons at length):
   reliable publisher still matches best-effort subscribers (``SensorDataQoS`` tools);
 * ``/peel/trajectory`` is RELIABLE, KEEP_LAST 10: one message per task, each must reach the
   learner and the recorder;
-* latched state (``/peel/model_version``) is RELIABLE, KEEP_LAST 1, TRANSIENT_LOCAL so a late
-  joiner (and the recorder) gets the current value, as ``/tf_static`` does;
+* latched state (``/peel/model_version``, ``/peel/model_info``) is RELIABLE, KEEP_LAST 1,
+  TRANSIENT_LOCAL so a late joiner (and the recorder) gets the current value, as ``/tf_static``
+  does;
+* ``/peel/model_update`` (one report per task from the learner) is RELIABLE, KEEP_LAST 10, like
+  the trajectory it answers;
 * ``/clock`` is published RELIABLE, KEEP_LAST 1 (matches every subscriber) and subscribed
   BEST_EFFORT, KEEP_LAST 1, as rclpy's time source does (matches every publisher).
 """
@@ -115,13 +118,14 @@ class TopicSpec:
     def sub_qos(self) -> QosSpec:
         """Profile a subscriber (the recorder) uses: the offered one, best effort for /clock.
 
-        ``/peel/model_version`` is read with a deeper history (transient local, depth 16) so that
-        two swaps in quick succession both reach the subscriber (and the bag), while a late
-        joiner still receives only the current version that the publisher keeps.
+        Latched topics (``/peel/model_version``, ``/peel/model_info``) are read with a deeper
+        history (transient local, depth 16) so that two swaps in quick succession both reach
+        the subscriber (and the bag), while a late joiner still receives only the current value
+        that the publisher keeps.
         """
         if self.name == CLOCK:
             return CLOCK_SUB_QOS
-        if self.name == MODEL_VERSION:
+        if self.qos == LATCHED_QOS:
             return replace(self.qos, depth=16)
         return self.qos
 
@@ -136,6 +140,8 @@ POSE = "/peel/pose"
 CMD_VEL = "/peel/cmd_vel"
 TRAJECTORY = "/peel/trajectory"
 MODEL_VERSION = "/peel/model_version"
+MODEL_INFO = "/peel/model_info"
+MODEL_UPDATE = "/peel/model_update"
 CLOCK = "/clock"
 
 #: Prefix of ``header.frame_id`` of every stamped message: the frame of task k is
@@ -177,8 +183,20 @@ _TABLE: tuple[TopicSpec, ...] = (
     ),
     TopicSpec(
         MODEL_VERSION, "std_msgs/msg/Int64", None, LATCHED_QOS, "peel_planner_node",
-        "version of the forward model the planner uses (0 = shipped checkpoint); "
-        "bumped on every accepted model swap", "-",
+        "version of the forward model the planner uses: 0 = its starting model, +1 on every "
+        "accepted model swap, never taken from a file name (identity: /peel/model_info)", "-",
+    ),
+    TopicSpec(
+        MODEL_INFO, "std_msgs/msg/String", None, LATCHED_QOS, "peel_planner_node",
+        "the model behind each version, JSON: version, sha256 (of its safetensors), path, "
+        "producer and task (the learner's update after task k; null for any other model); "
+        "published with every /peel/model_version (layout in peel_msgs_py.modelinfo)", "-",
+    ),
+    TopicSpec(
+        MODEL_UPDATE, "std_msgs/msg/String", None, TRAJECTORY_QOS, "model_learner_node",
+        "what became of the learner's update after each task, JSON: producer, task, status "
+        "(swapped / refused / failed / skipped), reason, sha256, path "
+        "(peel_msgs_py.modelinfo)", "-",
     ),
     TopicSpec(
         CLOCK, "rosgraph_msgs/msg/Clock", STATE_RATE_HZ, CLOCK_QOS, "peel_sim_node",

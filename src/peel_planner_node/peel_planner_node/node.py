@@ -6,8 +6,11 @@ Algorithm 2) and publishes ``/peel/cmd_vel`` stamped with the sample it answers 
 Holds the forward model; the model swap is its standard parameter service: setting
 ``model.path`` runs :func:`~peel_planner_node.model_check.validate_model` in the on-set callback
 and either swaps the model in between two planning cycles (callbacks of one executor thread) or
-refuses with the reason, keeping the old model. The active version goes out on
-``/peel/model_version`` (Int64, transient local).
+refuses with the reason, keeping the old model. Versions come from a
+:class:`~model_learner_node.versions.ModelLedger` (0 = the starting model, +1 per accepted swap,
+whoever asked for it and whatever the file is called); the active version goes out on
+``/peel/model_version`` (Int64, transient local) and, with the model's identity (SHA-256,
+producer and task of a learner update), on ``/peel/model_info`` (JSON, transient local).
 """
 
 from __future__ import annotations
@@ -23,8 +26,9 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Int64
+from std_msgs.msg import Int64, String
 
+from model_learner_node.versions import ModelLedger
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.ros.main import run_node
@@ -35,7 +39,7 @@ from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
 from .config import PlannerConfig
 from .control_loop import Answer, ControlLoop, StateAssembler
 from .dynamics import LearnedDynamics
-from .model_check import resolve_model_path, validate_model, version_of
+from .model_check import resolve_model_path, validate_model
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
 
 
@@ -51,9 +55,10 @@ class PlannerNode(NamedRefusals, Node):
         path = resolve_model_path(self.values[MODEL_PATH])
         try:
             pred = validate_model(path, None, self.values["node.probe_batch"], None)
+            self.ledger = ModelLedger.start(path)  # version 0
         except PeelError as exc:
             raise PeelError(f"parameter '{MODEL_PATH}': {exc}") from None
-        self.h, self.version = int(pred.h), version_of(path, 0)
+        self.h = int(pred.h)
         self.loop = ControlLoop(self.cfg, LearnedDynamics(pred, dt_s=self.dt_s),
                                 self.values["node.seed"])
         self.parts = StateAssembler()
@@ -61,6 +66,7 @@ class PlannerNode(NamedRefusals, Node):
         self.pub_cmd = self.create_publisher(TwistStamped, topics.CMD_VEL, qos(topics.CMD_VEL))
         self.pub_version = self.create_publisher(Int64, topics.MODEL_VERSION,
                                                  qos(topics.MODEL_VERSION))
+        self.pub_info = self.create_publisher(String, topics.MODEL_INFO, qos(topics.MODEL_INFO))
         self.create_subscription(WrenchStamped, topics.WRENCH, self.on_wrench,
                                  qos(topics.WRENCH, subscriber=True))
         self.create_subscription(TwistStamped, topics.TWIST, self.on_twist,
@@ -86,10 +92,20 @@ class PlannerNode(NamedRefusals, Node):
             self.get_logger().warn(f"fewer than {want} readers of {topics.CMD_VEL}; going on")
         self.announcer.cancel()
         self.destroy_timer(self.announcer)
-        self.pub_version.publish(Int64(data=self.version))
+        self.publish_version()
         self.get_logger().info(f"model v{self.version} announced after {waited:.2f} s "
                                f"({self.pub_cmd.get_subscription_count()} readers of "
                                f"{topics.CMD_VEL})")
+
+    @property
+    def version(self) -> int:
+        """The version of the model planning now."""
+        return self.ledger.latest.version
+
+    def publish_version(self) -> None:
+        """The active model on ``/peel/model_version`` and, with its identity, ``/peel/model_info``."""
+        self.pub_version.publish(Int64(data=self.version))
+        self.pub_info.publish(String(data=self.ledger.latest.to_json()))
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, **parts: float) -> None:
@@ -128,34 +144,39 @@ class PlannerNode(NamedRefusals, Node):
         others = {p.name: p.value for p in params if p.name != MODEL_PATH}
         try:
             cfg = PlannerConfig.from_params({**self.values, **others}) if others else None
-            pred = self.check_model(str(model[-1].value)) if model else None
+            checked = self.check_model(str(model[-1].value)) if model else None
         except PeelError as exc:
             self.get_logger().warn(str(exc))
             return SetParametersResult(successful=False, reason=str(exc))
         if cfg is not None:  # from the next task on
             self.values.update(others)
             self.cfg = self.loop.cfg = cfg
-        if pred is not None:
-            self.swap(pred, Path(str(model[-1].value)))
+        if checked is not None:
+            self.swap(*checked, Path(str(model[-1].value)))
         return SetParametersResult(successful=True)
 
-    def check_model(self, value: str) -> Any:
+    def check_model(self, value: str) -> tuple[Any, tuple[str, str | None, int | None]]:
+        """The predictor and its identity (SHA-256, producer, task), or PeelError."""
+        from model_learner_node.versions import identify
+
         if not value:
             raise PeelError("model swap refused: model.path must be a non-empty string")
         try:
-            return validate_model(Path(value), self.loop.probe_rows(),
+            pred = validate_model(Path(value), self.loop.probe_rows(),
                                   self.values["node.probe_batch"], self.h)
+            return pred, identify(value)
         except PeelError as exc:
             raise PeelError(f"model swap refused: {exc}") from None
         except Exception as exc:  # anything else a broken file can raise
             raise PeelError(f"model swap refused: {type(exc).__name__}: {exc}") from None
 
-    def swap(self, pred: Any, path: Path) -> None:
-        """Plan with ``pred`` from the next cycle on; publish its version."""
+    def swap(self, pred: Any, identity: tuple[str, str | None, int | None], path: Path) -> None:
+        """Plan with ``pred`` from the next cycle on; publish its version and identity."""
         self.loop.set_dynamics(LearnedDynamics(pred, dt_s=self.dt_s))
-        self.version = version_of(path, self.version + 1)
-        self.pub_version.publish(Int64(data=self.version))
-        self.get_logger().info(f"model swap: now v{self.version} ({path.name})")
+        rec = self.ledger.accept(path, identity)
+        self.publish_version()
+        origin = f"{rec.producer}'s update after task {rec.task}" if rec.producer else "outside"
+        self.get_logger().info(f"model swap: now v{rec.version} ({path.name}, {origin})")
 
 
 def main(args: list[str] | None = None) -> int:

@@ -7,8 +7,12 @@ Runs ``node.tasks`` consecutive tasks (:class:`~peel_sim_node.lockstep.TaskSeque
 ``peel_task_<k>``); each control sample waits for the ``/peel/cmd_vel`` that answers its stamp
 (lockstep); each finished task goes out on ``/peel/trajectory``. A wall-clock timer re-sends an
 unanswered sample every ``node.cmd_timeout_s``, aborts the task after ``node.cmd_give_up_s``,
-and between tasks waits (``node.wait_model_s``) for the learner's new model version, as the
-paper's loop does (Algorithm 2 line 20).
+and between tasks waits (``node.wait_model_s``) for the learner's update of the last task, as
+the paper's loop does (Algorithm 2 line 20): by its identity
+(:class:`~peel_msgs_py.modelinfo.UpdateWait`): the planner's ``/peel/model_info`` record of
+``node.learner_node``'s update after task k, or the learner's ``/peel/model_update`` report
+that it failed, was refused or skipped (then the next task starts at once). A model swapped in
+by anyone else does not end the wait.
 """
 
 from __future__ import annotations
@@ -21,9 +25,11 @@ from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray, Int64
+from std_msgs.msg import Float64MultiArray, String
 
 from peel_msgs_py import codec, topics
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.modelinfo import SWAPPED, ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
@@ -63,13 +69,15 @@ class SimNode(NamedRefusals, Node):
                                               qos(topics.TRAJECTORY))
         self.create_subscription(TwistStamped, topics.CMD_VEL, self.on_cmd,
                                  qos(topics.CMD_VEL, subscriber=True))
-        self.create_subscription(Int64, topics.MODEL_VERSION, self.on_version,
-                                 to_profile(topics.topic(topics.MODEL_VERSION).sub_qos))
+        self.create_subscription(String, topics.MODEL_INFO, self.on_model_info,
+                                 to_profile(topics.topic(topics.MODEL_INFO).sub_qos))
+        self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
+                                 to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
+        self.updates = UpdateWait(self.p["node.learner_node"])
         self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.model_version: int | None = None
         self.versions_seen: set[int] = set()
         self.version_at_start: int | None = None
-        self.start_version = 0
         self.finished_tasks = 0
         self.phase, self.since = "wait_graph", time.monotonic()
         self.sent = self.asked = self.since  # last publication; first sending of the waiting one
@@ -88,9 +96,23 @@ class SimNode(NamedRefusals, Node):
         if self.seq.ended:
             self.end_task(None)
 
-    def on_version(self, msg: Int64) -> None:
-        self.model_version = int(msg.data)
-        self.versions_seen.add(int(msg.data))
+    def on_model_info(self, msg: String) -> None:
+        """The planner's active model (version and identity)."""
+        try:
+            rec = ModelRecord.from_json(msg.data)
+        except PeelError as exc:
+            self.get_logger().error(f"ignoring a malformed {topics.MODEL_INFO} message: {exc}")
+            return
+        self.updates.add_record(rec)
+        self.model_version = rec.version
+        self.versions_seen.add(rec.version)
+
+    def on_model_update(self, msg: String) -> None:
+        """The learner's report on its update after a task."""
+        try:
+            self.updates.add_report(UpdateReport.from_json(msg.data))
+        except PeelError as exc:
+            self.get_logger().error(f"ignoring a malformed {topics.MODEL_UPDATE} message: {exc}")
 
     def on_tick(self) -> None:
         waited = time.monotonic() - self.since
@@ -109,7 +131,7 @@ class SimNode(NamedRefusals, Node):
         """Before task 1: the planner's model version and enough subscribers (or time out)."""
         missing = []
         if self.model_version is None:
-            missing.append(f"{topics.MODEL_VERSION} from the planner")
+            missing.append(f"{topics.MODEL_INFO} from the planner")
         state = self.p["node.min_subscribers"]
         for pub, want, name in ((self.pub_wrench, state, topics.WRENCH),
                                 (self.pub_twist, state, topics.TWIST),
@@ -122,7 +144,6 @@ class SimNode(NamedRefusals, Node):
             return
         if missing:
             self.get_logger().warn(f"starting without {', '.join(missing)}")
-        self.start_version = self.model_version or 0
         self.start_task()
 
     def start_task(self) -> None:
@@ -155,15 +176,22 @@ class SimNode(NamedRefusals, Node):
         self.set_phase("between")
 
     def wait_model(self, waited: float) -> None:
-        """Between tasks: the learner's update of the last task (Algorithm 2 line 20)."""
-        want = self.start_version + self.finished_tasks
+        """Between tasks: the learner's update of the last task (Algorithm 2 line 20), known by
+        its identity; a failed, refused or skipped update ends the wait at once."""
+        task = self.finished_tasks
         wait_s = self.p["node.wait_model_s"]
-        arrived = (self.model_version or 0) >= want
+        outcome = self.updates.outcome(task) if wait_s > 0 else None
         all_done = 0 < self.p["node.tasks"] <= self.finished_tasks
-        if not arrived and wait_s > 0 and waited < wait_s:
+        if outcome is None and wait_s > 0 and waited < wait_s:
             return
-        if not arrived and wait_s > 0:
-            self.get_logger().warn(f"model version {want} did not arrive within {wait_s:g} s")
+        if outcome is None and wait_s > 0:
+            self.get_logger().warn(f"the learner's update after task {task} did not arrive "
+                                   f"within {wait_s:g} s; going on with model "
+                                   f"v{self.model_version}")
+        elif outcome is not None and outcome.status != SWAPPED:
+            self.get_logger().warn(f"the learner's update after task {task} {outcome.status}"
+                                   f"{': ' + outcome.reason if outcome.reason else ''}; going on "
+                                   f"with model v{self.model_version}")
         if not all_done:
             self.start_task()
             return
