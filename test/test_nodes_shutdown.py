@@ -42,10 +42,12 @@ def test_signal_stops_the_node_cleanly(module: str, signals: tuple[int, ...],
 
 
 # A stand-in child: counts the SIGINTs it gets until one second after the first, then exits 0.
+# Like every peel process it releases the stop signals the launcher holds once its handler is in.
 COUNTER = """
 import signal, sys, time
 n = []
 signal.signal(signal.SIGINT, lambda s, f: n.append(s))
+signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
 print("ready", flush=True)
 end = time.monotonic() + 120
 while not n and time.monotonic() < end:
@@ -73,3 +75,21 @@ def test_the_launcher_sends_each_node_one_signal(tmp_path) -> None:
     for child in children:
         assert child.poll() == 0, (child.name, child.log.read_text())
         assert (tmp_path / f"{child.name}.count").read_text() == "1", child.name
+
+
+@pytest.mark.parametrize("module", ["peel_planner_node.node", "model_learner_node.node",
+                                    "peel_msgs_py.recorder_cli"])
+def test_a_signal_while_the_child_still_imports_ends_it_cleanly(module: str, tmp_path,
+                                                                ros_domain: str) -> None:
+    """The launcher's SIGINT can come while a child is still importing torch: held until the
+    child's handlers are in (peel_msgs_py.held_signals), it ends the child cleanly, status 0."""
+    from peel_bringup.graph import Child
+
+    args = ["--out", str(tmp_path / "bag")] if "recorder" in module else ["--ros-args"]
+    child = Child(module, [sys.executable, "-m", module, *args], tmp_path / "child.log")
+    child.start(dict(os.environ), verbose=False)
+    time.sleep(0.05)  # the interpreter has started; the imports have not finished
+    child.signal(signal.SIGINT)
+    assert child.stop(60, signalled=True) == 0, child.log.read_text()
+    text = child.log.read_text()
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text

@@ -17,6 +17,7 @@ from __future__ import annotations
 import queue
 import sys
 import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,8 @@ from peel_msgs_py.trajectory import Trajectory
 from .online import OnlineLearner, task_number
 from .parameters import NODE_NAME, SPECS
 
+JOIN_TIMEOUT_S = 10.0  # wall s the worker gets to finish a running update at shutdown
+
 
 class LearnerNode(NamedRefusals, Node):
     """The trajectory subscription, the swap client and the Algorithm 1 worker thread."""
@@ -58,6 +61,7 @@ class LearnerNode(NamedRefusals, Node):
                                                 topics.qos_profile(topics.MODEL_UPDATE))
         self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
                                  topics.qos_profile(topics.TRAJECTORY, subscriber=True))
+        self.closing = threading.Event()
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
         self.worker.start()
         self.get_logger().info(f"learner ready: {self.learner.describe()}")
@@ -70,18 +74,29 @@ class LearnerNode(NamedRefusals, Node):
 
     def work(self) -> None:
         """Worker thread: one update per finished task, the swap request, the report."""
-        while (traj := self.queue.get()) is not None:
+        while (traj := self.queue.get()) is not None and not self.closing.is_set():
+            report = self.update(traj)
+            if self.closing.is_set():
+                return  # the node is shutting down: nothing is offered any more
             try:
-                report = self.learner.learn(traj, self.get_logger())
-            except Exception as exc:  # e.g. the checkpoint could not be written
-                task = task_number(traj, self.learner.n_tasks)
-                self.get_logger().error(f"update after task {task} failed: "
+                if report.status == OFFERED:
+                    report = self.offer(report)
+                self.pub_update.publish(String(data=report.to_json()))
+            except Exception as exc:  # rclpy refuses calls once the node is being destroyed
+                if self.closing.is_set():
+                    return
+                self.get_logger().error(f"task {report.task}: the update could not be offered: "
                                         f"{type(exc).__name__}: {exc}")
-                report = UpdateReport(self.learner.producer, task, FAILED,
-                                      f"{type(exc).__name__}: {exc}")
-            if report.status == OFFERED:
-                report = self.offer(report)
-            self.pub_update.publish(String(data=report.to_json()))
+
+    def update(self, traj: Trajectory) -> UpdateReport:
+        """Algorithm 1 on the finished task; a failure becomes a ``failed`` report."""
+        try:
+            return self.learner.learn(traj, self.get_logger())
+        except Exception as exc:  # e.g. the checkpoint could not be written
+            task = task_number(traj, self.learner.n_tasks)
+            self.get_logger().error(f"update after task {task} failed: "
+                                    f"{type(exc).__name__}: {exc}")
+            return UpdateReport(self.learner.producer, task, FAILED, f"{type(exc).__name__}: {exc}")
 
     def offer(self, report: UpdateReport) -> UpdateReport:
         """Ask the planner to swap the update in; ``swapped`` or ``refused`` with its reason."""
@@ -102,16 +117,22 @@ class LearnerNode(NamedRefusals, Node):
         done = threading.Event()
         future = self.client.call_async(req)
         future.add_done_callback(lambda _f: done.set())
-        if not done.wait(self.timeout_s):
-            self.client.remove_pending_request(future)
-            return False, f"no answer from the planner within {self.timeout_s:g} s"
+        deadline = time.monotonic() + self.timeout_s
+        while not done.wait(0.1):  # in slices, so that a shutdown does not wait for it
+            if self.closing.is_set() or time.monotonic() > deadline:
+                self.client.remove_pending_request(future)
+                return False, f"no answer from the planner within {self.timeout_s:g} s"
         resp: Any = future.result()
         if resp is None or not resp.results:
             return False, "empty answer"
         return bool(resp.results[0].successful), str(resp.results[0].reason)
 
     def destroy_node(self) -> None:
+        """Stop the worker first (it finishes a running update, offers nothing more), so no
+        rclpy call races the destruction of the node."""
+        self.closing.set()
         self.queue.put(None)
+        self.worker.join(timeout=JOIN_TIMEOUT_S)
         super().destroy_node()
 
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from peel_msgs_py import discovery
+from peel_msgs_py import discovery, held_signals
 from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
@@ -151,8 +151,10 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
 
 def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
     """Own process group (one Ctrl-C is handled in order by the launcher); SIGTERM to the child
-    when the launcher dies (Linux PR_SET_PDEATHSIG)."""
+    when the launcher dies (Linux PR_SET_PDEATHSIG); SIGINT/SIGTERM held until the child's own
+    handlers are installed (:mod:`peel_msgs_py.held_signals`)."""
     os.setpgrp()
+    held_signals.hold()
     try:
         import ctypes
 

@@ -19,6 +19,7 @@ import sys
 import time
 
 from . import bag as bagmod
+from . import held_signals
 from .cliargs import ArgumentParser, positive_float, positive_int, run_main
 from .topics import RECORDED_TOPICS, topic
 
@@ -55,6 +56,7 @@ class _Stop:
     def __enter__(self) -> _Stop:
         for sig in (signal.SIGINT, signal.SIGTERM):
             self._old[sig] = signal.signal(sig, self._handle)
+        held_signals.release()  # a signal held since the launcher started us arrives now
         return self
 
     def _handle(self, signum: int, frame: object) -> None:

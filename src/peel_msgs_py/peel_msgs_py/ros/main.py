@@ -32,6 +32,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from .. import held_signals
 from ..errors import PeelError
 from ..params import ros_args_overrides
 
@@ -80,11 +81,13 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
     node: Node | None = None
     status = 0
     signals = _Signals()  # before rclpy.init: rclpy's handler chains to this one
+    held_signals.release()  # a signal held since the process started (launcher) arrives now
     try:
         ros_args_overrides(argv, name)
         rclpy.init(args=argv)
-        node = make()
-        status = spin_until_done(node)
+        if signals.received is None:  # else stopped before ROS started: nothing to build
+            node = make()
+            status = spin_until_done(node)
     except PeelError as exc:
         print(f"{name}: error: {exc}", file=sys.stderr, flush=True)
         status = 2
