@@ -23,6 +23,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("peel_bringup.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
     "record": ("peel_msgs_py.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
+    "residual": ("model_learner_node.residual.cli:main",
+                 "trace the model's residual on bags to physical effects, add them, report"),
 }
 
 
