@@ -158,6 +158,7 @@ class Setup:
     substrate_stream: int = 0  # 0: the experiment's substrates, 1: the sweep's
     maml_changes: dict[str, Any] = field(default_factory=dict)
     baseline2_changes: dict[str, Any] = field(default_factory=dict)
+    effects: tuple[str, ...] = ()  # user effects module:function added to the plant
 
 
 def task_seed(seed: int, k: int, stream: int = 0) -> int:
@@ -231,6 +232,7 @@ def run_job(method: str, seed: int, setup: Setup,
     from peel_planner_node.config import PlannerConfig
     from peel_planner_node.cost import Cost, episode_cost
     from peel_sim_node.config import load_sim_config
+    from peel_sim_node.effects import load_effects
     from peel_sim_node.env import PeelEnv
     from peel_sim_node.episode import run_episode
 
@@ -250,7 +252,7 @@ def run_job(method: str, seed: int, setup: Setup,
     last: Trajectory | None = None
     model_path = None
     env = PeelEnv(sim_cfg, source="plant", seed=task_seed(seed, 0, setup.substrate_stream),
-                  params=subs[0])
+                  params=subs[0], effects=load_effects(setup.effects))
     try:
         for k, params in enumerate(subs):
             ts = task_seed(seed, k, setup.substrate_stream)
@@ -336,8 +338,10 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
                    sim_overrides: str | None = None, planner_overrides: str | None = None,
                    learner_overrides: str | None = None, command: str = "",
                    maml_changes: Mapping[str, Any] | None = None,
-                   baseline2_changes: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Run every method (and the oracle) on every seed; write results.json, figures, report."""
+                   baseline2_changes: Mapping[str, Any] | None = None,
+                   effects: Sequence[str] = ()) -> dict[str, Any]:
+    """Run every method (and the oracle) on every seed; write results.json, figures, report.
+    ``effects``: user effects (``module:function``) added to the plant of every job."""
     from . import report as rp
 
     check_methods(cfg.methods)
@@ -349,7 +353,7 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
                   sim_overrides=sim_overrides, learner_overrides=learner_overrides,
                   out_dir=str(out), save_model=cfg.save_model,
                   maml_changes=dict(maml_changes or {}),
-                  baseline2_changes=dict(baseline2_changes or {}))
+                  baseline2_changes=dict(baseline2_changes or {}), effects=tuple(effects))
     methods = list(cfg.methods) + ([ORACLE] if cfg.oracle else [])
     jobs = [(m, s) for s in cfg.seeds for m in methods]
     t0 = time.perf_counter()
@@ -378,6 +382,7 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
         "tasks": cfg.tasks,
         "seeds": list(cfg.seeds),
         "checkpoint": str(checkpoint),
+        "effects": list(effects),
         "planner": {"n_samples": cfg.n_samples, "horizon": cfg.horizon, "lambda": cfg.lam},
         "config": {**asdict(cfg), "planner_params": pparams},
         "methods": {m: {"tasks": agg[m]} for m in methods},
@@ -409,7 +414,7 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
 
 def run_sweep(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out: Path,
               sim_overrides: str | None = None, planner_overrides: str | None = None,
-              command: str = "") -> dict[str, Any]:
+              command: str = "", effects: Sequence[str] = ()) -> dict[str, Any]:
     """Table 2: one peel per (factor value, seed) with the given model, no learning."""
     from . import report as rp
 
@@ -426,7 +431,8 @@ def run_sweep(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out:
             params[key] = type(base[key])(val)
             setups.append((name, float(val), Setup(
                 checkpoint=str(checkpoint), tasks=1, planner_params=params,
-                sim_overrides=sim_overrides, save_model=False, substrate_stream=1)))
+                sim_overrides=sim_overrides, save_model=False, substrate_stream=1,
+                effects=tuple(effects))))
     from tqdm import tqdm
 
     jobs = [(name, val, st, s) for name, val, st in setups for s in cfg.sweep_seeds]
@@ -464,7 +470,8 @@ def run_sweep(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out:
                 "safety_stops": sum(r["outcome"] == "safety_stop" for r in recs),
                 "outcomes": [r["outcome"] for r in recs],
             })
-    sweep = {"command": command, "checkpoint": str(checkpoint), "seeds": list(cfg.sweep_seeds),
+    sweep = {"command": command, "checkpoint": str(checkpoint), "effects": list(effects),
+             "seeds": list(cfg.sweep_seeds),
              "defaults": {"N": cfg.n_samples, "H": cfg.horizon, "lambda": cfg.lam},
              "table2": table, "runs": raw, "timing": {"wall_s": wall, "workers": cfg.workers}}
     rp.write_json(out / "table2.json", sweep)

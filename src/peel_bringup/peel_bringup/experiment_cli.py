@@ -60,6 +60,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params-file", help="override file for config/peel_bringup.yaml")
     p.add_argument("--sim-params", help="override file for config/peel_sim_node.yaml")
     p.add_argument("--planner-params", help="override file for config/peel_planner_node.yaml")
+    p.add_argument("--effect", action="append", default=[], metavar="MODULE:FUNCTION",
+                   help="add a user effect to the plant (peel_sim_node.effects interface); "
+                        "repeatable")
 
 
 def _base_cfg(args: argparse.Namespace) -> ExperimentConfig:
@@ -115,6 +118,14 @@ def sweep_parser() -> argparse.ArgumentParser:
                    "0.02,0.05,0.1,0.2,0.5)")
     _common(p)
     return p
+
+
+def _effects(specs: list[str]) -> tuple[str, ...]:
+    """The ``--effect`` names, checked (imported) before any job starts."""
+    from peel_sim_node.effects import load_effects
+
+    load_effects(specs)
+    return tuple(specs)
 
 
 def _checkpoint(path: str | None) -> str:
@@ -173,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         cfg, checkpoint=_checkpoint(args.checkpoint), out=args.out,
         sim_overrides=args.sim_params, planner_overrides=args.planner_params,
         learner_overrides=args.learner_params, command=command,
-        maml_changes={"first_order": True} if args.first_order else None)
+        maml_changes={"first_order": True} if args.first_order else None,
+        effects=_effects(args.effect))
     print(json.dumps(_summary(results), indent=1))
     return 0
 
@@ -193,7 +205,7 @@ def _sweep(argv: list[str], command: str) -> int:
 
     sweep = run_sweep(cfg, checkpoint=_checkpoint(args.checkpoint), out=args.out,
                       sim_overrides=args.sim_params, planner_overrides=args.planner_params,
-                      command=command)
+                      command=command, effects=_effects(args.effect))
     print(json.dumps({"out": sweep["files"], "table2": sweep["table2"],
                       "timing": sweep["timing"]}, indent=1))
     return 0

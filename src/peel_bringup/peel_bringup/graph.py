@@ -1,7 +1,7 @@
 """``peel graph``: run the ROS 2 node graph as separate OS processes (issue 7, docs/graph.md).
 
     peel graph [--plant sim|plant] [--tasks K] [--record BAG] [--params FILE] [--seed S]
-               [--out DIR] [--keep-going] [--verbose]
+               [--effect MODULE:FUNCTION ...] [--out DIR] [--keep-going] [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
 ``peel record``, with ``--record``) as child processes on the selected runtime (``PEEL_RUNTIME``,
@@ -74,8 +74,8 @@ def _p(name: str, value: Any) -> list[str]:
     """``-p name:=value`` with a YAML-safe value."""
     if isinstance(value, bool):
         text = "true" if value else "false"
-    elif isinstance(value, str):
-        text = json.dumps(value)  # a quoted YAML string
+    elif isinstance(value, (str, list)):
+        text = json.dumps(value)  # a quoted YAML string / a flow sequence of them
     else:
         text = repr(value)
     return ["-p", f"{name}:={text}"]
@@ -95,14 +95,18 @@ def node_command(name: str, override: str | None, sets: dict[str, Any]) -> list[
 
 
 def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: bool,
-                  ) -> dict[str, dict[str, Any]]:
-    """The ``-p`` settings the launcher gives each node."""
+                  effects: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    """The ``-p`` settings the launcher gives each node (``effects``: the sim node's
+    ``node.effects``, user effects added to the plant)."""
+    sim: dict[str, Any] = {
+        "use_sim_time": True, "node.source": plant, "node.tasks": tasks, "node.seed": seed,
+        "node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
+        "node.min_traj_subscribers": 3 if recording else 2,  # learner, launcher (+ rec.)
+    }
+    if effects:
+        sim["node.effects"] = list(effects)
     return {
-        "peel_sim_node": {
-            "use_sim_time": True, "node.source": plant, "node.tasks": tasks, "node.seed": seed,
-            "node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
-            "node.min_traj_subscribers": 3 if recording else 2,  # learner, launcher (+ rec.)
-        },
+        "peel_sim_node": sim,
         "peel_planner_node": {"use_sim_time": True, "node.seed": seed},
         "model_learner_node": {
             "use_sim_time": True, "node.out_dir": str((run_dir / "models").resolve()),
@@ -219,6 +223,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--params", metavar="FILE", default=None,
                    help="ROS 2 parameter file applied on top of config/ (any node's section)")
     p.add_argument("--seed", type=int, default=None, help="seed of the task sequence")
+    p.add_argument("--effect", action="append", default=[], metavar="MODULE:FUNCTION",
+                   help="add a user effect to the plant (peel_sim_node.effects interface); "
+                        "repeatable")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="run directory for models, logs, summary.json "
                         "(default: graph.out_dir/<time>)")
@@ -267,13 +274,17 @@ def run_graph(args: argparse.Namespace) -> int:
     bag = Path(args.record) if args.record else None
     if bag is not None and bag.exists():
         raise PeelError(f"--record: {bag} already exists")
+    if args.effect:  # fail here, before anything starts, on a name that does not import
+        from peel_sim_node.effects import load_effects
+
+        load_effects(args.effect)
     run_dir.mkdir(parents=True, exist_ok=True)
 
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     env.setdefault("PEEL_CONFIG_DIR", str(config_dir()))
     env.setdefault("OMP_NUM_THREADS", "1")
-    sets = node_settings(plant, tasks, seed, run_dir, bag is not None)
+    sets = node_settings(plant, tasks, seed, run_dir, bag is not None, args.effect)
     children: list[Child] = []
     if bag is not None:
         children.append(Child(RECORDER, [sys.executable, "-m", "peel_msgs_py.recorder_cli",
@@ -386,6 +397,7 @@ def run_graph(args: argparse.Namespace) -> int:
 
     summary = {
         "plant": plant, "tasks": tasks, "seed": seed, "params": override,
+        "effects": list(args.effect),
         "bag": str(bag) if bag else None, "run_dir": str(run_dir),
         "model_versions": sorted(set(mon.versions)), "dead_nodes": dead,
         "results": results, "status": status,

@@ -20,6 +20,10 @@ Example, a sticky patch between 10 and 12 mm::
 
     def sticky_patch(s: EffectState) -> EffectAction:
         return EffectAction(resist_n=4.0 if 10.0 <= s.q_mm < 12.0 else 0.0)
+
+From the command line, ``peel graph --effect mymodule:sticky_patch`` and ``peel experiment
+--effect ...`` add such a function to the plant (:func:`load_effect`); a few ready-made ones
+are in :mod:`peel_sim_node.example_effects`.
 """
 
 from __future__ import annotations
@@ -91,3 +95,35 @@ class ResidualVacuum:
 
     def __call__(self, state: EffectState) -> EffectAction:
         return EffectAction(load_n=self.load_n * math.exp(-max(state.q_mm, 0.0) / self.length_mm))
+
+
+def load_effect(spec: str) -> Effect:
+    """The user effect named ``module:function`` (an importable module and a callable in it,
+    ``function(EffectState) -> EffectAction | None``), e.g. for ``peel graph --effect``.
+
+    This imports the named module: it is the user's own code, named on the command line, never
+    read from a data file."""
+    import importlib
+
+    from peel_msgs_py.errors import PeelError
+
+    module, sep, name = str(spec).partition(":")
+    if not sep or not module or not name:
+        raise PeelError(f"effect {spec!r} must be given as module:function")
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise PeelError(f"effect {spec!r}: cannot import {module!r} ({exc})") from None
+    func = mod
+    for part in name.split("."):
+        func = getattr(func, part, None)
+        if func is None:
+            raise PeelError(f"effect {spec!r}: {module!r} has no {name!r}")
+    if not callable(func):
+        raise PeelError(f"effect {spec!r}: {name!r} is not callable")
+    return func
+
+
+def load_effects(specs: list[str] | tuple[str, ...]) -> list[Effect]:
+    """:func:`load_effect` for each spec (duplicates allowed: they add)."""
+    return [load_effect(s) for s in specs]

@@ -53,6 +53,8 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
               "launcher, recorder)", min=0),
     ParamSpec("node.exit_when_done", bool, False,
               "exit after the last task (and its model update); for ros2 launch"),
+    ParamSpec("node.effects", list, [],
+              "user effects module:function added to the plant (peel_sim_node.effects)"),
 )
 
 
@@ -116,8 +118,11 @@ class SimNode:
         self.p = node_params(flat)
         self.cfg = SimConfig.from_params(library_params(flat))
         self.steps = self.cfg.samples_per_control
+        from .effects import load_effects
+
+        effects = load_effects([str(e) for e in self.p["node.effects"]])
         self.env = PeelEnv(self.cfg, source=self.p["node.source"],
-                           seed=task_seed(self.p["node.seed"], 0))
+                           seed=task_seed(self.p["node.seed"], 0), effects=effects)
         n = self.node
         qos = topics.qos_profile
         self.pub_clock = n.create_publisher(Clock, topics.CLOCK, qos(topics.CLOCK))
