@@ -138,3 +138,7 @@ def test_other_bad_arguments(tmp_path: Path, small_bag: Path) -> None:
                          str(tmp_path / "o")), "--holdout")
     _one_line_error(peel("residual", str(small_bag), "--model", str(tmp_path / "x"),
                          "--out", str(tmp_path / "o")), "no such checkpoint")
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "report.json").write_text("{}")
+    _one_line_error(peel("residual", str(small_bag), "--out", str(tmp_path / "done")),
+                    "already holds a peel residual report")

@@ -95,6 +95,9 @@ def _save_corrected(out: Path, result: Any, model_path: Path, bags: list[str]) -
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    if (args.out / "report.json").exists():
+        raise PeelError(f"--out {args.out} already holds a peel residual report; give a new "
+                        "directory")
     cfg = _config(args)
     import torch
 
