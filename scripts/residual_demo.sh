@@ -9,7 +9,8 @@
 # 4. planner cost J per task and safety margin, before and after (peel_bringup.residual_compare);
 # 5. the plant's own documented differences: the graph on the plant without injected effects and
 #    peel residual with the shipped simulator-trained model; and the same analysis on plant data
-#    under exploratory commands (scripts/residual_scenarios.py).
+#    under exploratory commands;
+# 6. the scenario table: known undeclared effects, three seeds (scripts/residual_scenarios.py).
 # With --docs the reports and figures are copied to docs/residual/ (what the docs page shows).
 # Environment: PEEL_DEMO_TASKS (default 30), PEEL_DEMO_SEED (default 0), ROS_DOMAIN_ID.
 set -euo pipefail
@@ -76,6 +77,9 @@ $peel graph --plant plant --tasks "$tasks" --seed "$((seed + 1))" \
 $peel residual "$out/plant/bag" --out "$out/plant_residual" --no-progress
 $py scripts/residual_scenarios.py --scenarios plant --seeds "$((seed + 201)),$((seed + 202)),$((seed + 203))" \
   --out "$out/plant_exploratory.jsonl"
+# 6. the scenario table
+$py scripts/residual_scenarios.py --seeds "$((seed + 101)),$((seed + 102)),$((seed + 103))" \
+  --out "$out/scenarios.jsonl"
 set +x
 if [ "$docs" = 1 ]; then
   dst=docs/residual
@@ -85,6 +89,7 @@ if [ "$docs" = 1 ]; then
   [ -d "$out/comparison" ] && cp "$out"/comparison/comparison.{md,json,png} "$dst/demo/"
   cp "$out"/plant_residual/report.{md,json} "$out"/plant_residual/*.png "$dst/plant/"
   cp "$out/plant_exploratory.jsonl" "$dst/plant/"
+  cp "$out/scenarios.jsonl" "$dst/"
   echo "residual_demo: copied the reports and figures to $dst/"
 fi
 echo "residual_demo: done; everything is in $out"

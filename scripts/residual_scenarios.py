@@ -95,6 +95,8 @@ def main() -> int:
                        ch: round(r.rmse_after[ch]["open_loop"] / r.rmse_before[ch]["open_loop"], 3)
                        for ch in ("fx", "fz", "v")},
                    "structure_remains": [s.channel for s in r.structure if s.remains],
+                   "open_loop_end_mean_se_n": {ch: [round(d["mean_n"], 2), round(d["se_n"], 2)]
+                                               for ch, d in r.drift.items()},
                    "wall_s": round(time.perf_counter() - t0, 1)}
             lines.append(json.dumps(rec))
             print(lines[-1], flush=True)

@@ -163,6 +163,21 @@ def terms_of(traces: dict[str, Trace]) -> list[Term]:
             for tr in traces.values() for f in tr.findings]
 
 
+def _held_out(model: Any, corrected: Any | None, hold: list[Trajectory], h: int,
+              cfg: ResidualConfig) -> tuple[E.Errors, E.Errors, dict[str, Any], list[Any]]:
+    """Errors before and after on the held-out tasks, the open-loop drift left after the
+    correction (mean residual at each horizon's last valid step), each term's share."""
+    s_h, hz_h = E.held_out(hold, h, cfg.horizon_steps, cfg.stride)
+    before = E.errors(model, s_h, hz_h)
+    after = E.errors(corrected, s_h, hz_h) if corrected is not None else before
+    end = np.array([np.flatnonzero(v)[-1] if v.any() else -1 for v in hz_h.valid])
+    keep = np.flatnonzero(end >= 0)
+    drift = {ch: open_loop_drift(after.open_loop[keep, end[keep], i], hz_h.task[keep])
+             for i, ch in enumerate(FORCE_CHANNELS)}
+    shares = E.term_shares(corrected, before, s_h, hz_h) if corrected is not None else []
+    return before, after, drift, shares
+
+
 #: The stages :func:`analyse` reports to its ``progress`` callback.
 STAGES: tuple[str, ...] = ("residual and trace (forces)", "trace (speed)", "what remains",
                            "error before/after")
@@ -201,23 +216,15 @@ def analyse(tasks: Sequence[Trajectory], model: Any, cfg: ResidualConfig, *,
                  for i, ch in enumerate(FORCE_CHANNELS)]
     tick(STAGES[2])
 
-    hold = [tasks[i] for i in hold_idx]
-    s_h, hz_h = E.held_out(hold, h, cfg.horizon_steps, cfg.stride)
-    before = E.errors(model, s_h, hz_h)
-    after = E.errors(after_model, s_h, hz_h) if corrected is not None else before
-    end = np.array([np.flatnonzero(v)[-1] if v.any() else -1 for v in hz_h.valid])
-    keep = end >= 0
-    drift = {}
-    for i, ch in enumerate(FORCE_CHANNELS):
-        last = after.open_loop[np.flatnonzero(keep), end[keep], i]
-        drift[ch] = open_loop_drift(last, hz_h.task[keep])
-    shares = E.term_shares(corrected, before, s_h, hz_h) if corrected is not None else []
+    before, after, drift, shares = _held_out(model, corrected, [tasks[i] for i in hold_idx],
+                                             h, cfg)
     tick(STAGES[3])
     return Result(
         traces=traces, terms=terms, corrected=corrected, fit_tasks=fit_idx,
         holdout_tasks=hold_idx, rmse_before=before.rmse(), rmse_after=after.rmse(),
         by_step_before=before.by_step(), by_step_after=after.by_step(),
         structure=structure, drift=drift, shares=shares,
-        samples={"fit_one_step": len(fit), "holdout_one_step": len(s_h),
-                 "holdout_open_loop_runs": len(hz_h), "horizon_steps": cfg.horizon_steps},
+        samples={"fit_one_step": len(fit), "holdout_one_step": len(before.one_step),
+                 "holdout_open_loop_runs": len(before.open_loop),
+                 "horizon_steps": cfg.horizon_steps},
         plots={"traces": plots, "fit": fit, "X": X, "y_after": y_after})

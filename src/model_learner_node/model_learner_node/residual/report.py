@@ -135,15 +135,9 @@ def _ratio(a: float | None, b: float | None) -> str:
     return "–" if not a or b is None else f"{b / a:.2f}"
 
 
-def build_markdown(rep: dict[str, Any]) -> str:
-    """report.md from the JSON dict."""
-    L = [f"# peel residual: {rep['model']['path']}", "",
-         f"Command: `{rep.get('command', '')}`", "",
-         f"{rep['tasks']} tasks from {len(rep['bags'])} bag(s); "
-         f"{len(rep['holdout']['tasks'])} held out (seed {rep['holdout']['seed']}), fitted on "
-         f"{len(rep['holdout']['fit_tasks'])}. Open loop: {rep['settings']['horizon_steps']} "
-         f"model steps ({rep['settings']['horizon_steps'] * rep['dt_s']:.1f} s, the planner's "
-         "horizon), the model fed its own forces and the measured speeds.", ""]
+def _md_errors(rep: dict[str, Any]) -> list[str]:
+    """The before/after table."""
+    L: list[str] = []
     L += ["## Error before and after (held-out tasks)", "",
           "| channel | mode | RMSE before | RMSE after | after / before |", "|---|---|---|---|---|"]
     for ch in CHANNELS:
@@ -155,7 +149,14 @@ def build_markdown(rep: dict[str, Any]) -> str:
                      f"{_ratio(b, a)} |")
     L += ["", "`v`: the robot's speed over the next sample predicted from the command; before = "
           "Eq. 2's mean v = u that the planner assumes.", "", "![rmse](rmse.png)",
-          "![open loop](open_loop_error.png)", "", "## Effects named", ""]
+          "![open loop](open_loop_error.png)"]
+    return L
+
+
+def _md_effects(rep: dict[str, Any]) -> list[str]:
+    """The named effects, or why none is claimed; the rejected candidates."""
+    L: list[str] = []
+    L += ["", "## Effects named", ""]
     if not rep["effects"]:
         best = [c for g in rep["selection"].values() for c in g["best_single_candidates"]]
         best = sorted(best, key=lambda d: -d["explained_variance"])[:3]
@@ -183,6 +184,12 @@ def build_markdown(rep: dict[str, Any]) -> str:
     if rep["rejected"]:
         L += ["", "Considered and not named: " + "; ".join(
             f"{r['key']} on {r['channel']} ({r['reason']})" for r in rep["rejected"]) + "."]
+    return L
+
+
+def _md_remains(rep: dict[str, Any]) -> list[str]:
+    """What remains after the correction."""
+    L: list[str] = []
     L += ["", "## What remains", ""]
     for u in rep["unexplained"]:
         if u["mode"] == "one_step":
@@ -203,6 +210,18 @@ def build_markdown(rep: dict[str, Any]) -> str:
             L.append(f"* {u['channel']}, open loop: mean residual at the horizon end "
                      f"{u['mean_n']:+.2f} ± {u['se_n']:.2f} N (SE over {u['tasks']} held-out "
                      f"tasks): {what}.")
+    return L
+
+def build_markdown(rep: dict[str, Any]) -> str:
+    """report.md from the JSON dict."""
+    L = [f"# peel residual: {rep['model']['path']}", "",
+         f"Command: `{rep.get('command', '')}`", "",
+         f"{rep['tasks']} tasks from {len(rep['bags'])} bag(s); "
+         f"{len(rep['holdout']['tasks'])} held out (seed {rep['holdout']['seed']}), fitted on "
+         f"{len(rep['holdout']['fit_tasks'])}. Open loop: {rep['settings']['horizon_steps']} "
+         f"model steps ({rep['settings']['horizon_steps'] * rep['dt_s']:.1f} s, the planner's "
+         "horizon), the model fed its own forces and the measured speeds.", ""]
+    L += _md_errors(rep) + _md_effects(rep) + _md_remains(rep)
     cm = rep.get("corrected_model")
     L += ["", "## Corrected model", "",
           f"`{cm}` (f_theta unchanged, the named terms in its JSON; loads in the planner, the "
