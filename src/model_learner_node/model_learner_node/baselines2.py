@@ -89,7 +89,8 @@ class HistoryRetrainer:
         self.n_updates, self.version = state["n_updates"], state["version"]
 
     def _loss(self, batch: Windows) -> Tensor:
-        return self.loss_fn(self.model(batch.hist, batch.v_next), batch)
+        return self.loss_fn(self.model(batch.hist, batch.v_next, **batch.model_kwargs(self.model)),
+                            batch)
 
     def update(self, new_traj: Trajectory, pool: Any = None) -> dict[str, Any]:
         """Retrain on the pool's trajectories plus ``new_traj``; returns a JSON-able report."""
@@ -112,7 +113,8 @@ class HistoryRetrainer:
         try:
             for _ in range(self.cfg.steps):
                 batch = sample_batch(replay, self.cfg.batch_slices, self.h, self.slice_len,
-                                     rng, dtype)
+                                     rng, dtype,
+                                     with_time=bool(getattr(self.model, "needs_time", False)))
                 opt.zero_grad(set_to_none=True)
                 loss = self._loss(batch)
                 loss.backward()

@@ -6,6 +6,13 @@ rebuild and check it: format name and version, architecture and its hyper-parame
 the normalisation in readable form, units, one entry per tensor (shape, dtype), the size and
 SHA-256 of the safetensors file, and free ``meta`` (dataset hash, metrics, training settings).
 
+A model with a compensation term (:class:`~model_learner_node.compensated.CompensatedPredictor`,
+written by ``peel residual``) is the same pair: the safetensors file holds f_theta exactly as a
+plain checkpoint does, the JSON has ``format_version`` 2 and a ``compensation`` block with the
+named physical terms and their coefficients. The terms' formulas come from
+:mod:`~model_learner_node.effect_terms` by family name; nothing in the file is executed. A reader
+of version 1 refuses such a file instead of silently dropping the terms.
+
 :func:`load_checkpoint` is strict: it refuses a missing or malformed JSON, another format or
 version, an unknown architecture, a safetensors file of the wrong size (truncated) or checksum,
 one that does not parse, and any tensor whose name, shape or dtype differs from the JSON or from
@@ -30,11 +37,14 @@ from safetensors.torch import save as st_save
 from peel_msgs_py.atomic import atomic_write_bytes
 from peel_msgs_py.errors import CheckpointError, PeelError
 
+from .compensated import CompensatedPredictor
 from .config import ARCHS, ModelConfig
 from .predictor import ForcePredictor
 
 FORMAT = "peel-forward-model"
 FORMAT_VERSION = 1
+#: format_version of a checkpoint with a ``compensation`` block (docs/residual.md).
+COMPENSATED_VERSION = 2
 CODE_VERSION = "0.1.0"
 UNITS = {
     "hist_columns": ["q_mm", "v_mmps", "fx_N", "fz_N"],
@@ -81,15 +91,23 @@ def _dtype_name(dtype: torch.dtype) -> str:
 
 
 def save_checkpoint(
-    path: str | os.PathLike[str], predictor: ForcePredictor, meta: dict[str, Any] | None = None
+    path: str | os.PathLike[str], predictor: ForcePredictor | CompensatedPredictor,
+    meta: dict[str, Any] | None = None
 ) -> Path:
-    """Write ``<name>.safetensors`` and ``<name>.json``; returns the safetensors path."""
+    """Write ``<name>.safetensors`` and ``<name>.json``; returns the safetensors path.
+
+    A :class:`CompensatedPredictor` is saved as its f_theta plus the ``compensation`` block."""
     st_path, js_path = checkpoint_paths(path)
+    compensation = None
+    if isinstance(predictor, CompensatedPredictor):
+        compensation = predictor.to_json()
+        predictor = predictor.base
+    version = FORMAT_VERSION if compensation is None else COMPENSATED_VERSION
     tensors = {k: v.detach().cpu().contiguous().clone() for k, v in predictor.state_dict().items()}
-    blob = st_save(tensors, metadata={"format": FORMAT, "format_version": str(FORMAT_VERSION)})
+    blob = st_save(tensors, metadata={"format": FORMAT, "format_version": str(version)})
     config = {
         "format": FORMAT,
-        "format_version": FORMAT_VERSION,
+        "format_version": version,
         "code_version": CODE_VERSION,
         "arch": predictor.arch,
         "h": predictor.h,
@@ -103,6 +121,8 @@ def save_checkpoint(
         "safetensors_sha256": hashlib.sha256(blob).hexdigest(),
         "meta": meta or {},
     }
+    if compensation is not None:
+        config["compensation"] = compensation
     try:
         config = jsonable(config)
         json.dumps(config, allow_nan=False)
@@ -131,10 +151,15 @@ def read_checkpoint_config(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise CheckpointError(
             f"checkpoint config {js_path}: format is {cfg.get('format')!r}, expected {FORMAT!r}"
         )
-    if cfg.get("format_version") != FORMAT_VERSION:
+    if cfg.get("format_version") not in (FORMAT_VERSION, COMPENSATED_VERSION):
         raise CheckpointError(
             f"checkpoint config {js_path}: format_version {cfg.get('format_version')!r} is not "
-            f"supported (this code reads version {FORMAT_VERSION})"
+            f"supported (this code reads versions {FORMAT_VERSION} and {COMPENSATED_VERSION})"
+        )
+    if (cfg.get("format_version") == COMPENSATED_VERSION) != ("compensation" in cfg):
+        raise CheckpointError(
+            f"checkpoint config {js_path}: format_version {COMPENSATED_VERSION} and a "
+            "'compensation' block go together"
         )
     if cfg.get("arch") not in ARCHS:
         raise CheckpointError(
@@ -148,8 +173,9 @@ def read_checkpoint_config(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def load_checkpoint(
     path: str | os.PathLike[str], device: str | torch.device = "cpu"
-) -> ForcePredictor:
-    """Rebuild a :class:`ForcePredictor` from a checkpoint, checking everything (module doc)."""
+) -> ForcePredictor | CompensatedPredictor:
+    """Rebuild a :class:`ForcePredictor` (or, for a ``compensation`` block, a
+    :class:`CompensatedPredictor` around it) from a checkpoint, checking everything."""
     st_path, js_path = checkpoint_paths(path)
     cfg = read_checkpoint_config(js_path)
     try:
@@ -212,6 +238,15 @@ def load_checkpoint(
     if not math.isfinite(float(predictor.pad_compliance.item())):
         raise CheckpointError(f"checkpoint {st_path}: non-finite pad compliance")
     predictor.eval()
+    if "compensation" in cfg:
+        try:
+            comp = CompensatedPredictor.from_json(predictor, cfg["compensation"])
+        except PeelError as exc:
+            raise CheckpointError(f"checkpoint config {js_path}: bad compensation: {exc}") from None
+        if abs(comp.dt_s - float(cfg.get("units", {}).get("dt_s", comp.dt_s))) > 1e-9:
+            raise CheckpointError(f"checkpoint config {js_path}: compensation dt_s {comp.dt_s:g} "
+                                  "differs from the model's units dt_s")
+        return comp.eval().to(device)
     return predictor.to(device)
 
 

@@ -53,7 +53,7 @@ from peel_msgs_py.trajectory import Trajectory
 from .config import MAML_SPECS, TrainConfig, load_train_config
 from .losses import mse_loss, pene_loss
 from .replay import ReplayPool
-from .windows import Windows
+from .windows import Windows, padded_times
 
 #: Score handicap of a trajectory that did not complete the task (see module docstring).
 FAILED_PENALTY: float = 1.0e6
@@ -145,6 +145,7 @@ def sample_batch(
     rng: np.random.Generator,
     dtype: torch.dtype = torch.float32,
     pad_front: int | None = None,
+    with_time: bool = False,
 ) -> Windows:
     """``n_slices`` slices (Fig. 6) from the model package's replay pool, as model windows.
 
@@ -152,16 +153,27 @@ def sample_batch(
     (:meth:`ReplayPool.sample_slices`) and yields its ``slice_len - h`` one-step windows
     (:func:`model_learner_node.windows.windows_from_slices`). Trajectories are front-padded
     with ``pad_front`` copies of sample 0 (default h - 1, as in offline training), so the start
-    of a peel is in the data. Returns :class:`Windows` of torch tensors of ``dtype``.
+    of a peel is in the data. Returns :class:`Windows` of torch tensors of ``dtype``;
+    ``with_time`` adds ``t_next`` (the time of each window's sample k+1 in its task) for models
+    with time terms (:class:`~model_learner_node.compensated.CompensatedPredictor`).
     """
     pool = trajs if isinstance(trajs, ReplayPool) else ReplayPool(
         trajs, pad_front=h - 1 if pad_front is None else pad_front)
-    w = pool.sample_slices(n_slices, max(slice_len, h + 1), rng).windows(h)
+    length = max(slice_len, h + 1)
+    slices = pool.sample_slices(n_slices, length, rng)
+    w = slices.windows(h)
 
     def conv(a: np.ndarray) -> Tensor:
         return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype)
 
-    return Windows(conv(w.hist), conv(w.v_next), conv(w.f_next), conv(w.psi_next))
+    t_next = None
+    if with_time:
+        held = pool.trajectories
+        rows = np.arange(h, length)
+        t_next = conv(np.concatenate([
+            padded_times(held[i], pool.pad_front)[s + rows]
+            for i, s in zip(slices.traj_index, slices.start, strict=True)]))
+    return Windows(conv(w.hist), conv(w.v_next), conv(w.f_next), conv(w.psi_next), t_next)
 
 
 def default_loss(pred: Tensor, batch: Windows) -> Tensor:
@@ -245,7 +257,8 @@ class MetaLearner:
 
     def loss(self, params: Params, batch: Windows) -> Tensor:
         """L_D(F_theta) of Eq. 26-27 evaluated with ``functional_call`` at ``params``."""
-        pred = functional_call(self.model, params, (batch.hist, batch.v_next), strict=False)
+        pred = functional_call(self.model, params, (batch.hist, batch.v_next),
+                               batch.model_kwargs(self.model), strict=False)
         return self.loss_fn(pred, batch)
 
     def adapt(self, params: Params, support: Windows) -> Params:
@@ -290,7 +303,8 @@ class MetaLearner:
         return hit[1]
 
     def _batch(self, traj: Trajectory, n: int, rng: np.random.Generator) -> Windows:
-        return sample_batch(self._pool(traj), n, self.h, self.slice_len, rng, self.dtype)
+        return sample_batch(self._pool(traj), n, self.h, self.slice_len, rng, self.dtype,
+                            with_time=bool(getattr(self.model, "needs_time", False)))
 
     def usable(self, traj: Trajectory) -> bool:
         """Whether ``traj`` is long enough for one slice."""

@@ -94,6 +94,10 @@ def main(argv: list[str] | None = None) -> int:
                if v is not None}
     train_cfg = replace(train_cfg, **changes)
     init = load_checkpoint(args.init) if args.init else None
+    if init is not None and getattr(init, "terms", None):
+        raise PeelError(f"--init {args.init} has a compensation term (peel residual); offline "
+                        "training takes a plain model (the learner node adapts a compensated "
+                        "one online, its terms held)")
     if init is not None:
         if args.arch is not None and args.arch != init.arch:
             raise PeelError(f"--arch {args.arch} differs from the --init checkpoint's {init.arch}")

@@ -31,6 +31,7 @@ class Windows:
     v_next: np.ndarray  # [N]      v_{k+1}, mm/s
     f_next: np.ndarray  # [N, 2]   fx_N, fz_N at k+1
     psi_next: np.ndarray  # [N]    psi_{k+1}, mm (NaN where unknown)
+    t_next: np.ndarray | None = None  # [N] time of sample k+1 in its task, s (time terms only)
 
     def __len__(self) -> int:
         return int(self.hist.shape[0])
@@ -40,10 +41,29 @@ class Windows:
         def conv(a: np.ndarray) -> torch.Tensor:
             return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32, device=device)
 
-        return Windows(conv(self.hist), conv(self.v_next), conv(self.f_next), conv(self.psi_next))
+        return Windows(conv(self.hist), conv(self.v_next), conv(self.f_next), conv(self.psi_next),
+                       None if self.t_next is None else conv(self.t_next))
 
     def subset(self, idx: np.ndarray) -> Windows:
-        return Windows(self.hist[idx], self.v_next[idx], self.f_next[idx], self.psi_next[idx])
+        return Windows(self.hist[idx], self.v_next[idx], self.f_next[idx], self.psi_next[idx],
+                       None if self.t_next is None else self.t_next[idx])
+
+    def model_kwargs(self, model: object) -> dict:
+        """``{"t_next": ...}`` for a model whose terms need the sample times, else ``{}``."""
+        if getattr(model, "needs_time", False):
+            if self.t_next is None:
+                raise ValueError("the model's terms need sample times; these windows have none")
+            return {"t_next": self.t_next}
+        return {}
+
+
+def padded_times(traj: Trajectory, pad_front: int) -> np.ndarray:
+    """Sample times ``[T+pad]`` matching :func:`padded_arrays`: the padded rows continue the time
+    base backwards from t_0 (one sample period each)."""
+    dt = traj.dt if len(traj) > 1 and np.isfinite(traj.dt) else 0.1
+    t0 = float(traj.t[0]) if len(traj) else 0.0
+    front = t0 - dt * np.arange(pad_front, 0, -1)
+    return np.concatenate([front, traj.t])
 
 
 def padded_arrays(traj: Trajectory, pad_front: int) -> tuple[np.ndarray, np.ndarray]:

@@ -30,6 +30,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
     "soak": ("peel_bringup.soak:main", "many consecutive peels through the graph: safety stops, "
              "every node's memory"),
+    "residual": ("model_learner_node.residual.cli:main",
+                 "trace the model's residual on bags to physical effects, add them, report"),
 }
 
 

@@ -164,6 +164,7 @@ class Setup:
     baseline2_changes: dict[str, Any] = field(default_factory=dict)
     plant_level: int | None = None  # None: plant.level of the simulator config
     sequence: str = "stationary"
+    effects: tuple[str, ...] = ()  # user effects module:function added to the plant
 
 
 def task_seed(seed: int, k: int, stream: int = 0) -> int:
@@ -243,6 +244,7 @@ def run_job(method: str, seed: int, setup: Setup,
     from peel_planner_node.config import PlannerConfig
     from peel_planner_node.cost import Cost, episode_cost
     from peel_sim_node.config import load_sim_config
+    from peel_sim_node.effects import load_effects
     from peel_sim_node.env import PeelEnv
     from peel_sim_node.episode import run_episode
 
@@ -263,7 +265,7 @@ def run_job(method: str, seed: int, setup: Setup,
     last: Trajectory | None = None
     model_path = None
     env = PeelEnv(sim_cfg, source="plant", seed=task_seed(seed, 0, setup.substrate_stream),
-                  params=subs[0], level=setup.plant_level)
+                  params=subs[0], level=setup.plant_level, effects=load_effects(setup.effects))
     try:
         for k, params in enumerate(subs):
             ts = task_seed(seed, k, setup.substrate_stream)
@@ -361,8 +363,10 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
                    sim_overrides: str | None = None, planner_overrides: str | None = None,
                    learner_overrides: str | None = None, command: str = "",
                    maml_changes: Mapping[str, Any] | None = None,
-                   baseline2_changes: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Run every method (and the oracle) on every seed; write results.json, figures, report."""
+                   baseline2_changes: Mapping[str, Any] | None = None,
+                   effects: Sequence[str] = ()) -> dict[str, Any]:
+    """Run every method (and the oracle) on every seed; write results.json, figures, report.
+    ``effects``: user effects (``module:function``) added to the plant of every job."""
     from peel_sim_node.plant import check_level, check_sequence
 
     from . import report as rp
@@ -380,7 +384,7 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
                   out_dir=str(out), save_model=cfg.save_model,
                   maml_changes=dict(maml_changes or {}),
                   baseline2_changes=dict(baseline2_changes or {}),
-                  plant_level=cfg.plant_level, sequence=cfg.sequence)
+                  plant_level=cfg.plant_level, sequence=cfg.sequence, effects=tuple(effects))
     methods = list(cfg.methods) + ([ORACLE] if cfg.oracle else [])
     jobs = [(m, s) for s in cfg.seeds for m in methods]
     t0 = time.perf_counter()
@@ -409,6 +413,7 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
         "tasks": cfg.tasks,
         "seeds": list(cfg.seeds),
         "checkpoint": str(checkpoint),
+        "effects": list(effects),
         "planner": {"n_samples": cfg.n_samples, "horizon": cfg.horizon, "lambda": cfg.lam},
         "plant": plant_description(sim_overrides, cfg.plant_level),
         "sequence": cfg.sequence,
@@ -442,7 +447,7 @@ def run_experiment(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str],
 
 def run_sweep(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out: Path,
               sim_overrides: str | None = None, planner_overrides: str | None = None,
-              command: str = "") -> dict[str, Any]:
+              command: str = "", effects: Sequence[str] = ()) -> dict[str, Any]:
     """Table 2: one peel per (factor value, seed) with the given model, no learning."""
     from . import report as rp
 
@@ -459,7 +464,8 @@ def run_sweep(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out:
             params[key] = type(base[key])(val)
             setups.append((name, float(val), Setup(
                 checkpoint=str(checkpoint), tasks=1, planner_params=params,
-                sim_overrides=sim_overrides, save_model=False, substrate_stream=1)))
+                sim_overrides=sim_overrides, save_model=False, substrate_stream=1,
+                effects=tuple(effects))))
     from tqdm import tqdm
 
     jobs = [(name, val, st, s) for name, val, st in setups for s in cfg.sweep_seeds]
@@ -497,7 +503,8 @@ def run_sweep(cfg: ExperimentConfig, *, checkpoint: str | os.PathLike[str], out:
                 "safety_stops": sum(r["outcome"] == "safety_stop" for r in recs),
                 "outcomes": [r["outcome"] for r in recs],
             })
-    sweep = {"command": command, "checkpoint": str(checkpoint), "seeds": list(cfg.sweep_seeds),
+    sweep = {"command": command, "checkpoint": str(checkpoint), "effects": list(effects),
+             "seeds": list(cfg.sweep_seeds),
              "defaults": {"N": cfg.n_samples, "H": cfg.horizon, "lambda": cfg.lam},
              "table2": table, "runs": raw, "timing": {"wall_s": wall, "workers": cfg.workers}}
     rp.write_json(out / "table2.json", sweep)

@@ -48,6 +48,12 @@ def _common(p: ArgumentParser) -> None:
     p.add_argument("--planner-params", help="override file for config/peel_planner_node.yaml")
 
 
+def _effect_arg(p: ArgumentParser) -> None:
+    p.add_argument("--effect", action="append", default=[], metavar="MODULE:FUNCTION",
+                   help="add a user effect to the plant (peel_sim_node.effects interface, "
+                        "docs/residual.md); repeatable")
+
+
 def _check_param_files(args: argparse.Namespace) -> None:
     """Read every override file now: a missing, non-UTF-8 or malformed one is refused before
     any peel runs (the workers read them again)."""
@@ -95,6 +101,7 @@ def experiment_parser() -> ArgumentParser:
                    "(maml and baseline2 groups)")
     p.add_argument("--first-order", action="store_true", help="first-order MAML")
     _plant_args(p)
+    _effect_arg(p)
     _common(p)
     return p
 
@@ -134,8 +141,18 @@ def sweep_parser() -> ArgumentParser:
     p.add_argument("--h", dest="h_values", type=_ints, help="H values (default 1,3,5,7,10)")
     p.add_argument("--lambdas", type=_floats, help="lambda values (default "
                    "0.02,0.05,0.1,0.2,0.5)")
+    _effect_arg(p)
     _common(p)
     return p
+
+
+def _effects(specs: list[str]) -> tuple[str, ...]:
+    """The ``--effect`` names, checked (imported) before anything is written or run."""
+    from peel_sim_node.effects import load_effect
+
+    for spec in specs:
+        load_effect(spec)
+    return tuple(specs)
 
 
 def _checkpoint(path: str | None) -> str:
@@ -195,13 +212,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.sequence is not None:
         changes["sequence"] = args.sequence
     cfg = replace(cfg, **changes)
+    effects = _effects(args.effect)
     from .experiment import run_experiment
 
     results = run_experiment(
         cfg, checkpoint=_checkpoint(args.checkpoint), out=out.create(),  # created after checks
         sim_overrides=args.sim_params, planner_overrides=args.planner_params,
         learner_overrides=args.learner_params, command=command,
-        maml_changes={"first_order": True} if args.first_order else None)
+        maml_changes={"first_order": True} if args.first_order else None,
+        effects=effects)
     print(json.dumps(_summary(results), indent=1))
     return 0
 
@@ -273,11 +292,12 @@ def _sweep(argv: list[str], command: str) -> int:
     if any(v < 1 for v in changes.get("sweep_n", (1,)) + changes.get("sweep_h", (1,))):
         raise PeelError("parameter 'n'/'h' values must be >= 1")
     cfg = replace(cfg, **changes)
+    effects = _effects(args.effect)
     from .experiment import run_sweep
 
     sweep = run_sweep(cfg, checkpoint=_checkpoint(args.checkpoint), out=out.create(),
                       sim_overrides=args.sim_params, planner_overrides=args.planner_params,
-                      command=command)
+                      command=command, effects=effects)
     print(json.dumps({"out": sweep["files"], "table2": sweep["table2"],
                       "timing": sweep["timing"]}, indent=1))
     return 0

@@ -1,8 +1,8 @@
 """``peel graph``: run the ROS 2 node graph as separate OS processes (docs/graph.md).
 
     peel graph [--plant sim|plant|nachi] [--tasks K] [--record BAG] [--params FILE] [--seed S]
-               [--nachi-host HOST] [--nachi-port PORT] [--out DIR [--force]] [--keep-going]
-               [--verbose]
+               [--effect MODULE:FUNCTION ...] [--nachi-host HOST] [--nachi-port PORT]
+               [--out DIR [--force]] [--keep-going] [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
 ``peel record``, with ``--record``) as child processes on rclpy (``ROS_DOMAIN_ID`` is passed on;
@@ -10,7 +10,9 @@ Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and 
 ``config/<node>.yaml``, the override file and a few ``-p`` settings, exactly as ``ros2 run``
 would get them. ``--plant nachi`` starts the bridge to the Nachi robot controller
 (``peel_nachi_bridge``, docs/nachi.md) at ``--nachi-host:--nachi-port`` in the simulator
-bridge's place; it publishes the same topics, so nothing else changes. Every node's parameters
+bridge's place; it publishes the same topics, so nothing else changes. ``--effect`` adds a user
+effect to the simulated plant (the simulator node's ``node.effects``; docs/residual.md); the
+names are imported before anything starts. Every node's parameters
 are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
 refuses its parameters or files anyway (a model with non-finite outputs, too) exits 2, and so
 does the graph. The launcher itself joins the graph as a listener (``peel_graph``:
@@ -40,6 +42,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,8 +109,8 @@ def _p(name: str, value: Any) -> list[str]:
     """``-p name:=value`` with a YAML-safe value."""
     if isinstance(value, bool):
         text = "true" if value else "false"
-    elif isinstance(value, str):
-        text = json.dumps(value)  # a quoted YAML string
+    elif isinstance(value, (str, list)):
+        text = json.dumps(value)  # a quoted YAML string, or a flow sequence of them
     else:
         text = repr(value)
     return ["-p", f"{name}:={text}"]
@@ -127,10 +130,11 @@ def node_command(name: str, override: str | None, sets: dict[str, Any]) -> list[
 
 
 def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: bool,
-                  link: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+                  link: dict[str, Any] | None = None, effects: Sequence[str] = (),
+                  ) -> dict[str, dict[str, Any]]:
     """The nodes to start and the ``-p`` settings the launcher gives each: the simulator bridge
-    (``plant`` sim or plant) or the Nachi bridge (``plant`` nachi; ``link``: its ``link.host``,
-    ``link.port``), the planner and the learner."""
+    (``plant`` sim or plant; ``effects``: its ``node.effects``) or the Nachi bridge (``plant``
+    nachi; ``link``: its ``link.host``, ``link.port``), the planner and the learner."""
     readers = {"node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
                "node.min_traj_subscribers": 3 if recording else 2}  # learner, launcher (+ rec.)
     if plant == "nachi":  # the substrates and the plant are the controller's
@@ -139,6 +143,8 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
         bridge = {"peel_sim_node": {"use_sim_time": True, "node.source": plant,
                                     "node.tasks": tasks, "node.seed": seed, **readers,
                                     "node.learner_node": LEARNER}}
+        if effects:
+            bridge["peel_sim_node"]["node.effects"] = list(effects)
     return {
         **bridge,
         "peel_planner_node": {"use_sim_time": True, "node.seed": seed,
@@ -260,6 +266,9 @@ def _parser() -> ArgumentParser:
     p.add_argument("--params", metavar="FILE", default=None,
                    help="ROS 2 parameter file applied on top of config/ (any node's section)")
     p.add_argument("--seed", type=nonnegative_int, default=None, help="seed of the task sequence")
+    p.add_argument("--effect", action="append", default=[], metavar="MODULE:FUNCTION",
+                   help="add a user effect to the simulated plant (peel_sim_node.effects "
+                        "interface, docs/residual.md); repeatable")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="run directory for models, logs, summary.json "
                         "(default: graph.out_dir/<time>)")
@@ -300,11 +309,13 @@ class Run:
     bag: Path | None
     #: the Nachi bridge's ``link.*`` settings from --nachi-host / --nachi-port
     link: dict[str, Any] = field(default_factory=dict)
+    #: user effects (``module:function``) for the simulator node's ``node.effects``
+    effects: tuple[str, ...] = ()
 
     def settings(self) -> dict[str, dict[str, Any]]:
         """The nodes to start and their ``-p`` settings (:func:`node_settings`)."""
         return node_settings(self.plant, self.tasks, self.seed, self.run_dir,
-                             self.bag is not None, self.link)
+                             self.bag is not None, self.link, self.effects)
 
 
 def resolve(args: argparse.Namespace) -> Run:
@@ -331,10 +342,26 @@ def resolve(args: argparse.Namespace) -> Run:
                                           ("link.port", args.nachi_port)) if value is not None}
     if link and plant != "nachi":
         raise PeelError("--nachi-host / --nachi-port need --plant nachi")
-    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link)
+    effects = check_effects(args.effect, plant)
+    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects)
     check_node_params(override, run.settings())
     out.create()  # every check above passed: nothing is written before this
     return run
+
+
+def check_effects(specs: Sequence[str], plant: str) -> tuple[str, ...]:
+    """The ``--effect`` names, each imported here (a name that does not import, or names no
+    callable, is bad input); the Nachi controller's plant is not ours to change."""
+    if not specs:
+        return ()
+    if plant == "nachi":
+        raise PeelError("--effect changes the simulated plant; it cannot be used with "
+                        "--plant nachi")
+    from peel_sim_node.effects import load_effect
+
+    for spec in specs:
+        load_effect(spec)
+    return tuple(specs)
 
 
 def children_of(run: Run) -> list[Child]:
@@ -508,6 +535,7 @@ def write_summary(w: Watch, mon: Any) -> int:
     run = w.run
     summary = {
         "plant": run.plant, "tasks": run.tasks, "seed": run.seed, "params": run.override,
+        "effects": list(run.effects),
         "bag": str(run.bag) if run.bag else None, "run_dir": str(run.run_dir),
         "model_versions": sorted(set(mon.versions)), "dead_nodes": w.dead,
         "failed_updates": w.failed_updates, "results": w.results, "status": w.status,

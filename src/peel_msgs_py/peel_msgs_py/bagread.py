@@ -77,6 +77,23 @@ def iter_messages(
         raise PeelError(f"bag {bag}: {exc}") from None
 
 
+def topic_names(path: str | os.PathLike[str], *, repair: bool = False) -> dict[str, int]:
+    """``{topic: message count}`` of a bag (same checks as :func:`iter_messages`)."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+
+    bag = Path(path)
+    _check(bag, repair)
+    try:
+        with Reader(bag) as reader:
+            counts: dict[str, int] = {}
+            for conn in reader.connections:
+                counts[conn.topic] = counts.get(conn.topic, 0) + int(conn.msgcount)
+            return counts
+    except ReaderError as exc:
+        raise PeelError(f"bag {bag}: {exc}") from None
+
+
 def _task(frame_id: str) -> int:
     try:
         return task_from_frame_id(frame_id)

@@ -80,6 +80,12 @@ class LearnedDynamics:
 
     ``native=True`` (default) runs the fused model-step loop in C++ when it can be built
     (:mod:`~.native_loop`; bit-identical, ~18 % faster at N = 50).
+
+    **Models that roll themselves out.** The one capability check: a predictor with a
+    ``rollout_from(history, v, dt_s)`` method (a model with a compensation term,
+    :class:`model_learner_node.compensated.CompensatedPredictor`, whose terms need the sample
+    times and whose speed response turns commands into speeds) is rolled out by that method, step
+    by step; the fused path, which reproduces only the plain network, is not used for it.
     """
 
     def __init__(self, predictor: Any, *, dt_s: float = 0.1, fast: bool = True,
@@ -96,8 +102,10 @@ class LearnedDynamics:
             self.dtype, self.device = torch.float32, torch.device("cpu")
         if hasattr(predictor, "eval"):
             predictor.eval()
+        own = getattr(predictor, "rollout_from", None)
+        self.model_rollout = own if callable(own) else None
         self.fused = None
-        if fast:
+        if fast and self.model_rollout is None:
             from .fused import FusedConvAttentionLSTM
 
             if FusedConvAttentionLSTM.supports(predictor):
@@ -142,6 +150,9 @@ class LearnedDynamics:
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         """Predicted (q, fx, fz) [N, S, 3] for ``v`` [N, S] from the end of ``history``."""
+        if self.model_rollout is not None:
+            with torch.inference_mode():
+                return self.model_rollout(history, v, self.dt_s)
         if self.fused is not None:
             window = history_window(history, self.h)
             k = self._chunk_count(int(v.shape[0]))

@@ -20,11 +20,17 @@ Example, a sticky patch between 10 and 12 mm::
 
     def sticky_patch(s: EffectState) -> EffectAction:
         return EffectAction(resist_n=4.0 if 10.0 <= s.q_mm < 12.0 else 0.0)
+
+From the command line, ``peel graph --effect mymodule:sticky_patch`` (the simulator node's
+parameter ``node.effects``) and ``peel experiment --effect ...`` add such a function to the
+plant (:func:`load_effects`); a few ready-made ones are in :mod:`peel_sim_node.example_effects`
+(docs/residual.md).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -92,3 +98,40 @@ class ResidualVacuum:
     def __call__(self, state: EffectState) -> EffectAction:
         return EffectAction(load_n=self.load_n * math.exp(-max(state.q_mm, 0.0) / self.length_mm))
 
+
+
+def load_effect(spec: str) -> Effect:
+    """The user effect named ``module:function`` (an importable module and a callable in it,
+    ``function(EffectState) -> EffectAction | None``), for ``peel graph --effect``.
+
+    This imports the named module: the user's own code, named on the command line or in the
+    simulator node's parameters, never read from a data file. Anything that goes wrong (bad
+    form, a module that does not import or raises while importing, no such callable) is a
+    :class:`~peel_msgs_py.errors.PeelError` in one line naming the effect.
+    """
+    import importlib
+
+    from peel_msgs_py.errors import PeelError
+
+    module, sep, name = str(spec).strip().partition(":")
+    if not sep or not module or not name:
+        raise PeelError(f"effect {spec!r} must be given as module:function")
+    try:
+        mod = importlib.import_module(module)
+    except Exception as exc:  # the user's module: any failure to import it is bad input
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise PeelError(f"effect {spec!r}: cannot import {module!r} ({first})") from None
+    func: object = mod
+    for part in name.split("."):
+        func = getattr(func, part, None)
+        if func is None:
+            raise PeelError(f"effect {spec!r}: {module!r} has no {name!r}")
+    if not callable(func):
+        raise PeelError(f"effect {spec!r}: {name!r} is not callable")
+    return func  # type: ignore[return-value]
+
+
+def load_effects(specs: Sequence[str]) -> list[Effect]:
+    """:func:`load_effect` for each non-empty spec (a repeated one adds twice); ``[""]`` (the
+    default of ``node.effects``) and ``[]`` are none."""
+    return [load_effect(s) for s in specs if str(s).strip()]

@@ -1,12 +1,17 @@
-"""run_episode: one task under a policy, commands every control period (section 4.2)."""
+"""run_episode: one task under a policy, commands every control period (section 4.2); and a
+set of tasks under exploratory command profiles."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+
+import numpy as np
 
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
+from .config import SimConfig
+from .effects import Effect
 from .env import PeelEnv
 
 Policy = Callable[[Trajectory], float]
@@ -27,3 +32,26 @@ def run_episode(env: PeelEnv, policy: Policy, *, seed: int | None = None,
             if env.done:
                 break
     return env.history
+
+
+def exploratory_tasks(cfg: SimConfig, *, source: str = "plant", effects: Sequence[Effect] = (),
+                      n: int = 24, seed: int = 0, u_min: float = 0.5,
+                      u_max: float = 6.0) -> list[Trajectory]:
+    """``n`` tasks under exploratory command profiles (:mod:`.profiles`, speeds in
+    [u_min, u_max] mm/s), task i with profile seed [seed, i] and noise seed 1000 seed + i; the
+    varied speeds are what the residual analysis needs to tell effects apart
+    (docs/residual.md)."""
+    from .profiles import ExploratoryProfile
+
+    env = PeelEnv(cfg, source=source, seed=seed, effects=list(effects))
+    out = []
+    try:
+        for i in range(n):
+            policy = ExploratoryProfile(np.random.default_rng([seed, i]), u_min, u_max, 200,
+                                        cfg.samples_per_control)
+            traj = run_episode(env, policy, seed=seed * 1000 + i)
+            traj.meta = {**traj.meta, "task_index": i}
+            out.append(traj)
+    finally:
+        env.close()
+    return out

@@ -17,6 +17,7 @@ Task ``k``'s physical parameters and noise seed derive from ``(seed, k)`` exactl
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +26,7 @@ import numpy as np
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
+from .effects import Effect
 from .env import PeelEnv, sample_params
 
 
@@ -59,14 +61,15 @@ class Sample:
 class TaskSequence:
     """The task loop of the simulator bridge, without ROS (module docstring)."""
 
-    def __init__(self, cfg: Any, *, source: str, seed: int, task_slot_s: float) -> None:
+    def __init__(self, cfg: Any, *, source: str, seed: int, task_slot_s: float,
+                 effects: Sequence[Effect] = ()) -> None:
         if task_slot_s <= cfg.task.t_max_s:
             raise PeelError(f"node.task_slot_s = {task_slot_s} must exceed task.t_max_s = "
                             f"{cfg.task.t_max_s}")
         self.cfg, self.source, self.seed = cfg, source, int(seed)
         self.slot_ns = to_ns(task_slot_s)
         self.steps = int(cfg.samples_per_control)
-        self.env = PeelEnv(cfg, source=source, seed=task_seed(seed, 0))
+        self.env = PeelEnv(cfg, source=source, seed=task_seed(seed, 0), effects=effects)
         self.index = -1  # task running or last finished
         self.awaiting: int | None = None  # stamp (ns) of the sample waiting for its command
         self.running = False

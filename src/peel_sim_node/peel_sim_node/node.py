@@ -12,7 +12,9 @@ the paper's loop does (Algorithm 2 line 20): by its identity
 (:class:`~peel_msgs_py.modelinfo.UpdateWait`): the planner's ``/peel/model_info`` record of
 ``node.learner_node``'s update after task k, or the learner's ``/peel/model_update`` report
 that it failed, was refused or skipped (then the next task starts at once). A model swapped in
-by anyone else does not end the wait.
+by anyone else does not end the wait. ``node.effects`` adds user effects (``module:function``,
+:func:`~peel_sim_node.effects.load_effects`) to the plant; a name that does not import is
+refused (exit 2) before any topic exists.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 
 from .config import SimConfig
+from .effects import load_effects
 from .lockstep import Sample, TaskSequence
 from .parameters import LIBRARY_SPECS, NODE_NAME, SPECS
 
@@ -59,7 +62,8 @@ class SimNode(NamedRefusals, Node):
         self.p = {k: v for k, v in values.items() if k.startswith("node.")}
         self.seq = TaskSequence(SimConfig.from_params(library_params(values)),
                                 source=self.p["node.source"], seed=self.p["node.seed"],
-                                task_slot_s=self.p["node.task_slot_s"])
+                                task_slot_s=self.p["node.task_slot_s"],
+                                effects=load_effects(self.p["node.effects"]))
         qos = topics.qos_profile
         self.pub_clock = self.create_publisher(ClockMsg, topics.CLOCK, qos(topics.CLOCK))
         self.pub_wrench = self.create_publisher(WrenchStamped, topics.WRENCH, qos(topics.WRENCH))

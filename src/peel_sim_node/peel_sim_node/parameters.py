@@ -36,6 +36,9 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
               "launcher, recorder)", min=0),
     ParamSpec("node.exit_when_done", bool, False,
               "exit after the last task (and its model update); for ros2 launch"),
+    ParamSpec("node.effects", list, [""],
+              "user effects added to the plant, each 'module:function' "
+              "(peel_sim_node.effects; docs/residual.md); [''] or [] = none"),
 )
 
 #: Everything the node declares.
