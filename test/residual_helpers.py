@@ -7,10 +7,11 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import ros_msgs as M
+
 from peel_msgs_py import codec
 from peel_msgs_py import topics as T
 from peel_msgs_py.bag import BagWriter
-from peel_msgs_py.runtime import msg as M
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.units import mm_to_m, mmps_to_mps
 from peel_sim_node.config import load_sim_config

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -18,6 +19,9 @@ from residual_helpers import generate_tasks, peel, write_bag
 
 from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from model_learner_node.compensated import CompensatedPredictor
+from model_learner_node.residual.cli import main as residual_main
+from peel_msgs_py.cliargs import run_main
+from peel_msgs_py.outputs import OutputDir
 from peel_sim_node.example_effects import slipping_axis, vacuum_leak
 
 REPORT_KEYS = {"rmse_before", "rmse_after", "effects", "unexplained", "holdout"}
@@ -95,16 +99,17 @@ def _one_line_error(proc, needle: str) -> None:
 
 
 def test_bag_without_the_needed_topics(tmp_path: Path) -> None:
+    import ros_msgs as M
+
     from peel_msgs_py import topics as T
     from peel_msgs_py.bag import BagWriter
-    from peel_msgs_py.runtime import msg as M
 
     with BagWriter(tmp_path / "clock") as bag:
         bag.add_topic(T.CLOCK, T.topic(T.CLOCK).type, [T.topic(T.CLOCK).qos])
         bag.write(T.CLOCK, M.serialize(M.Clock()), 1_700_000_000_000_000_000)
     proc = peel("residual", str(tmp_path / "clock"), "--out", str(tmp_path / "o"))
     _one_line_error(proc, "has neither /peel/trajectory nor all of")
-    assert not (tmp_path / "o" / "report.json").exists()
+    assert not (tmp_path / "o").exists()  # nothing written, not even the folder
 
 
 def test_truncated_bag(tmp_path: Path, small_bag: Path) -> None:
@@ -114,31 +119,52 @@ def test_truncated_bag(tmp_path: Path, small_bag: Path) -> None:
     mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
     proc = peel("residual", str(bag), "--out", str(tmp_path / "o"))
     _one_line_error(proc, "peel record --repair")
+    assert not (tmp_path / "o").exists()
+
+
+def _in_process(capsys: pytest.CaptureFixture[str], *argv: str):
+    """``peel residual ARGV`` through the same top-level handler, in this process (argument and
+    model checks: no need to import torch again in a subprocess)."""
+    code = run_main("peel residual", residual_main, list(argv))
+    return subprocess.CompletedProcess(argv, code, "", capsys.readouterr().err)
 
 
 @pytest.mark.parametrize(("edit", "needle"), [
     (lambda c: c["units"].update(dt_s=0.05), "the model's inputs are 0.05 s apart"),
     (lambda c: c["units"].update(hist_columns=["q_m", "v_mps", "fx_N", "fz_N"]), "its inputs"),
 ])
-def test_model_whose_inputs_do_not_match(tmp_path: Path, small_bag: Path, edit, needle) -> None:
+def test_model_whose_inputs_do_not_match(tmp_path: Path, small_bag: Path, edit, needle,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
     src = shipped_checkpoint()
     shutil.copy(src, tmp_path / "m.safetensors")
     cfg = json.loads(src.with_suffix(".json").read_text())
     edit(cfg)
     (tmp_path / "m.json").write_text(json.dumps(cfg))
-    proc = peel("residual", str(small_bag), "--model", str(tmp_path / "m.safetensors"),
-                "--out", str(tmp_path / "o"))
+    proc = _in_process(capsys, str(small_bag), "--model", str(tmp_path / "m.safetensors"),
+                       "--out", str(tmp_path / "o"))
     _one_line_error(proc, needle)
+    assert not (tmp_path / "o").exists()
 
 
-def test_other_bad_arguments(tmp_path: Path, small_bag: Path) -> None:
-    _one_line_error(peel("residual", str(tmp_path / "nope"), "--out", str(tmp_path / "o")),
-                    "does not exist")
-    _one_line_error(peel("residual", str(small_bag), "--holdout", "0.99", "--out",
-                         str(tmp_path / "o")), "--holdout")
-    _one_line_error(peel("residual", str(small_bag), "--model", str(tmp_path / "x"),
-                         "--out", str(tmp_path / "o")), "no such checkpoint")
-    (tmp_path / "done").mkdir()
+def test_other_bad_arguments(tmp_path: Path, small_bag: Path,
+                             capsys: pytest.CaptureFixture[str]) -> None:
+    def refused(needle: str, *argv: str) -> None:
+        _one_line_error(_in_process(capsys, *argv), needle)
+
+    out = str(tmp_path / "o")
+    refused("does not exist", str(tmp_path / "nope"), "--out", out)
+    refused("--holdout", str(small_bag), "--holdout", "0.99", "--out", out)
+    refused("--seed", str(small_bag), "--seed", "-1", "--out", out)
+    refused("no such checkpoint", str(small_bag), "--model", str(tmp_path / "x"), "--out", out)
+    (tmp_path / "p.yaml").write_text(
+        "model_learner_node:\n  ros__parameters:\n    residual:\n      holdot: 0.2\n")
+    refused("unknown parameter 'residual.holdot'", str(small_bag), "--params",
+            str(tmp_path / "p.yaml"), "--out", out)
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "notes.txt").write_text("mine")
+    refused("holds no peel run", str(small_bag), "--out", str(tmp_path / "foreign"))
+    OutputDir(tmp_path / "done", command="peel residual").create()
     (tmp_path / "done" / "report.json").write_text("{}")
-    _one_line_error(peel("residual", str(small_bag), "--out", str(tmp_path / "done")),
-                    "already holds a peel residual report")
+    refused("holds an earlier 'peel residual' run", str(small_bag), "--out",
+            str(tmp_path / "done"))
+    assert not (tmp_path / "o").exists()

@@ -1,13 +1,15 @@
 """``peel residual``: where the forward model is wrong on recorded bags, why, and the fix.
 
-    peel residual BAG [BAG ...] [--model CKPT] --out DIR [--holdout FRACTION] [--seed S]
-                  [--params FILE] [--no-progress]
+    peel residual BAG [BAG ...] [--model CKPT] --out DIR [--force] [--holdout FRACTION]
+                  [--seed S] [--params FILE] [--no-progress]
 
 Reads the tasks of the bags (:mod:`.tasks`), runs the analysis (:mod:`.analysis`), writes
 ``DIR/report.json``, ``DIR/report.md``, the PNG figures and, when an effect is named, the
 corrected model ``DIR/corrected.safetensors`` + ``.json`` (a checkpoint like any other, with the
 terms in its JSON). Prints a JSON summary on stdout. Bad input (a bag without the /peel topics,
-a truncated bag, a model whose inputs do not match the data) is a one-line error, exit 2.
+a truncated bag, a model whose inputs do not match the data) is a one-line error, exit 2, and
+nothing is written: the output folder (:class:`~peel_msgs_py.outputs.OutputDir`) is checked
+first and created only when the report is written.
 """
 
 from __future__ import annotations
@@ -20,15 +22,19 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from peel_msgs_py.cliargs import ArgumentParser, float_arg, nonnegative_int, run_main
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.outputs import OutputDir
 
 from ..predictor import INPUT_COLUMNS
+from .params import RESIDUAL_SPECS
 
 RESIDUAL_DOC = "docs/residual.md"
+_HOLDOUT = next(s for s in RESIDUAL_SPECS if s.name == "residual.holdout")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def build_parser() -> ArgumentParser:
+    p = ArgumentParser(
         prog="peel residual",
         description="Trace the forward model's residual on recorded bags to physical effects, "
                     "add them as a compensation term and report the error before and after "
@@ -37,11 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", metavar="CKPT", default=None,
                    help="checkpoint to analyse (default: the shipped pretrained model)")
     p.add_argument("--out", metavar="DIR", type=Path, required=True, help="output directory")
-    p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier 'peel residual' run in --out")
+    p.add_argument("--holdout", type=float_arg(_HOLDOUT.min, _HOLDOUT.max), default=None,
+                   metavar="FRACTION",
                    help="share of the tasks held out of the fit (default: residual.holdout)")
-    p.add_argument("--seed", type=int, default=None, help="seed (default: residual.seed)")
+    p.add_argument("--seed", type=nonnegative_int, default=None,
+                   help="seed (default: residual.seed)")
     p.add_argument("--params", metavar="FILE", default=None,
-                   help="parameter file over config/model_learner_node.yaml (residual group)")
+                   help="parameter file over config/ (the residual group of model_learner_node; "
+                        "the planner's mppi.horizon for the open-loop horizon)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -70,15 +81,7 @@ def _config(args: argparse.Namespace) -> Any:
 
     if args.params is not None and not Path(args.params).is_file():
         raise PeelError(f"--params: no such file {args.params}")
-    changes: dict[str, Any] = {}
-    if args.holdout is not None:
-        if not 0.05 <= args.holdout <= 0.9:
-            raise PeelError(f"--holdout must be in [0.05, 0.9], got {args.holdout}")
-        changes["holdout"] = args.holdout
-    if args.seed is not None:
-        if args.seed < 0:
-            raise PeelError(f"--seed must be >= 0, got {args.seed}")
-        changes["seed"] = args.seed
+    changes = {k: getattr(args, k) for k in ("holdout", "seed") if getattr(args, k) is not None}
     return load_residual_config(args.params, **changes)
 
 
@@ -95,9 +98,7 @@ def _save_corrected(out: Path, result: Any, model_path: Path, bags: list[str]) -
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    if (args.out / "report.json").exists():
-        raise PeelError(f"--out {args.out} already holds a peel residual report; give a new "
-                        "directory")
+    out = OutputDir(args.out, command="peel residual", force=args.force)
     cfg = _config(args)
     import torch
 
@@ -121,16 +122,16 @@ def main(argv: list[str] | None = None) -> int:
             bar.update(1)
 
         result = analyse(tasks, model, cfg, dt_s=dt, progress=tick)
-    args.out.mkdir(parents=True, exist_ok=True)
-    corrected = None
-    if result.corrected is not None:
-        corrected = _save_corrected(args.out, result, model_path, [str(b) for b in args.bags])
-    info = {"command": "peel residual " + " ".join(shlex.quote(a) for a in argv),
-            "bags": [str(b) for b in args.bags], "dt_s": dt,
-            "model": {"path": str(model_path), "arch": model.arch, "h": int(model.h),
-                      "terms_before": [t.to_json() for t in getattr(model, "terms", ())]},
-            "corrected_model": str(corrected) if corrected else None}
-    rep = write_report(args.out, result, tasks, cfg, info)
+    with out as out_dir:  # created only now: bad input above leaves nothing behind
+        corrected = None
+        if result.corrected is not None:
+            corrected = _save_corrected(out_dir, result, model_path, [str(b) for b in args.bags])
+        info = {"command": "peel residual " + " ".join(shlex.quote(a) for a in argv),
+                "bags": [str(b) for b in args.bags], "dt_s": dt,
+                "model": {"path": str(model_path), "arch": model.arch, "h": int(model.h),
+                          "terms_before": [t.to_json() for t in getattr(model, "terms", ())]},
+                "corrected_model": str(corrected) if corrected else None}
+        rep = write_report(out_dir, result, tasks, cfg, info)
     print(json.dumps({"out": str(args.out), "corrected_model": rep["corrected_model"],
                       "effects": [{k: e[k] for k in ("key", "channel", "expression",
                                                      "explained_variance")}
@@ -141,8 +142,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except PeelError as exc:
-        print(f"peel residual: error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    sys.exit(run_main("peel residual", main))

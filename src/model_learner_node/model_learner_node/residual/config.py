@@ -1,4 +1,5 @@
-"""Settings of ``peel residual``: the ``residual:`` group of config/model_learner_node.yaml."""
+"""Settings of ``peel residual``: the ``residual:`` group of config/model_learner_node.yaml
+(specs in :mod:`.params`), validated into a :class:`ResidualConfig` with its candidates."""
 
 from __future__ import annotations
 
@@ -7,40 +8,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from peel_msgs_py.errors import ParameterError
-from peel_msgs_py.params import ParamSpec, load_node_params, validate_group
+from peel_msgs_py.params import load_node_params, validate_group
 
 from ..effect_terms import FAMILIES, Candidate, candidates_from_grid
+from .params import GRIDS, RESIDUAL_SPECS
 
 NODE = "model_learner_node"
-
-#: ``residual.<name>`` -> the family whose shape parameter it lists.
-GRIDS: dict[str, str] = {
-    "coulomb_v0_mmps": "coulomb_friction",
-    "stribeck_vs_mmps": "stribeck_friction",
-    "periodic_lambda_mm": "periodic_adhesion",
-    "near_start_length_mm": "near_start_hold",
-    "decay_tau_s": "decay_in_time",
-    "hysteresis_dv0_mmps": "hysteresis",
-}
-
-RESIDUAL_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("residual.holdout", float, 0.3, "share of tasks held out", min=0.05, max=0.9),
-    ParamSpec("residual.seed", int, 0, "seed of split, bootstrap, structure check", min=0),
-    ParamSpec("residual.folds", int, 5, "cross-validation folds (by task)", min=2, max=50),
-    ParamSpec("residual.horizon_steps", int, 0, "open-loop model steps; 0 = the planner's",
-              min=0, max=1000),
-    ParamSpec("residual.stride", int, 5, "samples between open-loop starts", min=1),
-    ParamSpec("residual.min_explained", float, 0.03, "least held-out share of a named term",
-              min=0.0, max=1.0),
-    ParamSpec("residual.ci_level", float, 0.95, "coefficient confidence level", min=0.5,
-              max=0.999),
-    ParamSpec("residual.bootstrap", int, 200, "bootstrap resamples by task", min=20),
-    ParamSpec("residual.min_structure", float, 0.05, "held-out R^2 meaning structure remains",
-              min=0.0, max=1.0),
-    ParamSpec("residual.families", list, list(FAMILIES), "candidate families"),
-    *(ParamSpec(f"residual.{name}", list, [], f"shape parameters of {fam}")
-      for name, fam in GRIDS.items()),
-)
 
 
 @dataclass(frozen=True)
@@ -68,7 +41,7 @@ class ResidualConfig:
             raise ParameterError(f"parameter 'residual.families': unknown or empty {unknown} "
                                  f"(known: {', '.join(FAMILIES)})")
         grid: dict[str, list[float] | None] = {f: None for f in families}
-        for name, fam in GRIDS.items():
+        for name, (fam, _) in GRIDS.items():
             values = p[name]
             if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0
                        for x in values):
@@ -90,7 +63,8 @@ class ResidualConfig:
 
 
 def load_residual_config(overrides: str | None = None, **changes: Any) -> ResidualConfig:
-    """The shipped ``residual:`` group (+ an override file, + keyword changes)."""
+    """The shipped ``residual:`` group (+ an override file, + keyword changes); the open-loop
+    horizon from the planner's parameters (shipped + the same override file)."""
     flat = load_node_params(NODE, overrides)
     flat.update({f"residual.{k}": v for k, v in changes.items()})
-    return ResidualConfig.from_params(flat)
+    return ResidualConfig.from_params(flat, load_node_params("peel_planner_node", overrides))
