@@ -83,12 +83,12 @@ def speed_ratio(trajs) -> float:
     return float(np.median(r))
 
 
-def test_graph_plans_learns_and_swaps_a_corrected_model_with_an_effect(tmp_path: Path) -> None:
+def test_graph_plans_learns_and_swaps_a_corrected_model_with_an_effect(
+        tmp_path: Path, ros_domain: str) -> None:
     model = corrected(tmp_path)
     override = tmp_path / "override.yaml"
     override.write_text(OVERRIDE.format(model=model))
-    env = dict(os.environ, PEEL_RUNTIME="dds", PYTHONUNBUFFERED="1",
-               ROS_DOMAIN_ID=str(160 + os.getpid() % 40))
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
     bag = tmp_path / "bag"
     proc = subprocess.run(
         [sys.executable, "-m", "peel_bringup.cli", "graph", "--plant", "plant", "--tasks", "2",

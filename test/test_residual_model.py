@@ -23,14 +23,15 @@ from model_learner_node.config import ModelConfig
 from model_learner_node.effect_terms import FAMILIES, Candidate, Rows, Term
 from model_learner_node.maml import MamlConfig, MetaLearner, sample_batch
 from model_learner_node.predictor import ForcePredictor, fit_normalization
+from model_learner_node.residual.params import FAMILY_NAMES, GRIDS
 from model_learner_node.synthetic import synthetic_trajectory
 from model_learner_node.windows import padded_times
 from peel_msgs_py.errors import CheckpointError, PeelError
 from peel_planner_node.config import load_planner_config
 from peel_planner_node.cost import Cost
 from peel_planner_node.dynamics import LearnedDynamics
+from peel_planner_node.model_check import validate_model
 from peel_planner_node.mppi import Planner
-from peel_planner_node.node import validate_model
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +55,9 @@ def test_every_family_has_its_basis_and_expressions() -> None:
     rows = Rows(q=torch.linspace(0, 25, 11)[None], v=torch.linspace(0.5, 6, 11)[None],
                 t=torch.linspace(0, 9, 11)[None], f=torch.rand(1, 11, 2) * 10,
                 u=torch.linspace(1, 5, 11)[None])
+    # the declared parameters (torch-free) list the library's families and shape grids
+    assert tuple(FAMILIES) == FAMILY_NAMES
+    assert all(FAMILIES[fam].param is not None for fam, _ in GRIDS.values())
     for name, fam in FAMILIES.items():
         cand = Candidate(name, None if fam.param is None else 2.0)
         phi = cand.basis(rows, 0)
@@ -159,6 +163,11 @@ def test_checkpoint_round_trip_and_refusals(base: ForcePredictor, tmp_path: Path
     assert torch.equal(back.predict(hist, v, t), comp.predict(hist, v, t))
     plain = save_checkpoint(tmp_path / "plain", base)
     assert json.loads(plain.with_suffix(".json").read_text())["format_version"] == 1
+    # the identity (SHA-256 of the weights file) differs with the terms, f_theta unchanged
+    other = save_checkpoint(tmp_path / "other", CompensatedPredictor(base, comp.terms[:2]))
+    shas = {json.loads(p.with_suffix(".json").read_text())["safetensors_sha256"]
+            for p in (path, plain, other)}
+    assert len(shas) == 3
     for edit, needle in [
         (lambda c: c["compensation"]["terms"][0].update(family="magic"), "unknown effect family"),
         (lambda c: c["compensation"]["terms"][2].update(coefficients=[1.5]), "stable"),
@@ -166,6 +175,7 @@ def test_checkpoint_round_trip_and_refusals(base: ForcePredictor, tmp_path: Path
         (lambda c: c.pop("compensation"), "go together"),
         (lambda c: c.update(format_version=1), "go together"),
         (lambda c: c["compensation"].update(dt_s=0.05), "dt_s"),
+        (lambda c: c["compensation"]["terms"][1].update(coefficients=[2.0]), "sealed"),
     ]:
         bad = json.loads(path.with_suffix(".json").read_text())
         edit(bad)
@@ -210,3 +220,8 @@ def test_planner_accepts_and_plans_with_a_corrected_checkpoint(base: ForcePredic
     planner.reset()
     u = planner.plan(synthetic_trajectory(1).slice(0, 25))
     assert math.isfinite(u) and cfg.mppi.u_min <= u <= cfg.mppi.u_max
+    # the swap check probes the terms too: a time term that overflows late in a task is refused
+    late = save_checkpoint(tmp_path / "late", CompensatedPredictor(
+        base, [_term("drift_in_time", "fz", 1e38)]))
+    with pytest.raises(CheckpointError, match="non-finite forces"):
+        validate_model(late, None, 16, 10)

@@ -9,7 +9,10 @@ SHA-256 of the safetensors file, and free ``meta`` (dataset hash, metrics, train
 A model with a compensation term (:class:`~model_learner_node.compensated.CompensatedPredictor`,
 written by ``peel residual``) is the same pair: the safetensors file holds f_theta exactly as a
 plain checkpoint does, the JSON has ``format_version`` 2 and a ``compensation`` block with the
-named physical terms and their coefficients. The terms' formulas come from
+named physical terms and their coefficients. The same block is sealed into the safetensors
+header's metadata (``compensation``, canonical JSON), so the file's SHA-256 -- the model's
+identity for the planner's versions (:mod:`~model_learner_node.versions`) -- covers the terms
+too, and a JSON whose terms were edited is refused. The terms' formulas come from
 :mod:`~model_learner_node.effect_terms` by family name; nothing in the file is executed. A reader
 of version 1 refuses such a file instead of silently dropping the terms.
 
@@ -104,7 +107,11 @@ def save_checkpoint(
         predictor = predictor.base
     version = FORMAT_VERSION if compensation is None else COMPENSATED_VERSION
     tensors = {k: v.detach().cpu().contiguous().clone() for k, v in predictor.state_dict().items()}
-    blob = st_save(tensors, metadata={"format": FORMAT, "format_version": str(version)})
+    header = {"format": FORMAT, "format_version": str(version)}
+    if compensation is not None:
+        compensation = jsonable(compensation)
+        header["compensation"] = _canonical(compensation)
+    blob = st_save(tensors, metadata=header)
     config = {
         "format": FORMAT,
         "format_version": version,
@@ -246,8 +253,26 @@ def load_checkpoint(
         if abs(comp.dt_s - float(cfg.get("units", {}).get("dt_s", comp.dt_s))) > 1e-9:
             raise CheckpointError(f"checkpoint config {js_path}: compensation dt_s {comp.dt_s:g} "
                                   "differs from the model's units dt_s")
+        if _header_metadata(blob).get("compensation") != _canonical(cfg["compensation"]):
+            raise CheckpointError(f"checkpoint config {js_path}: its compensation block differs "
+                                  f"from the one sealed in {st_path.name}")
         return comp.eval().to(device)
     return predictor.to(device)
+
+
+def _canonical(obj: Any) -> str:
+    """One text per JSON value (sorted keys, no spaces): what the weights file seals."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _header_metadata(blob: bytes) -> dict[str, str]:
+    """The ``__metadata__`` of a safetensors file's JSON header (8-byte length, then JSON)."""
+    try:
+        n = int.from_bytes(blob[:8], "little")
+        meta = json.loads(blob[8:8 + n]).get("__metadata__") or {}
+    except (ValueError, AttributeError):
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 def shipped_checkpoint() -> Path:
