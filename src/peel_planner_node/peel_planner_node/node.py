@@ -115,7 +115,7 @@ class PlannerNode:
 
         from .config import PlannerConfig
         from .cost import Cost
-        from .dynamics import LearnedDynamics
+        from .dynamics import learned_dynamics
         from .mppi import Planner
 
         self.topics, self.codec = topics, codec
@@ -131,7 +131,7 @@ class PlannerNode:
         self.dt_ns = round(self.dt * 1e9)
         self.steps = self.cfg.mppi.steps_per_horizon_step
         self.log = n.get_logger()
-        self.LearnedDynamics = LearnedDynamics
+        self.learned_dynamics = learned_dynamics
 
         path = resolve_model_path(str(flat.get(MODEL_PATH) or ""))
         pred = validate_model(path, None, self.p["node.probe_batch"], None)
@@ -139,7 +139,7 @@ class PlannerNode:
         self.version = version_of(path, 0)
         self.model_path = path
         self.Planner, self.cost = Planner, Cost(self.cfg.cost)
-        self.planner = Planner(LearnedDynamics(pred, dt_s=self.dt), self.cost, self.cfg)
+        self.planner = Planner(learned_dynamics(pred, self.cfg.dynamics), self.cost, self.cfg)
         self.lock = threading.Lock()
 
         qos = topics.qos_profile
@@ -163,7 +163,8 @@ class PlannerNode:
         n.add_on_set_parameters_callback(self._on_set_parameters)
         self.publish_version()
         self.log.info(f"planner ready: model v{self.version} ({path.name}), "
-                      f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}")
+                      f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}, "
+                      f"{self.planner.dynamics.describe()}")
 
     # -- model swap --------------------------------------------------------------------------
     def close(self) -> None:
@@ -201,7 +202,7 @@ class PlannerNode:
                 self.log.warn(reason)
                 return SetParametersResult(successful=False, reason=reason)
             with self.lock:  # atomic between two planning cycles
-                self.planner.set_dynamics(self.LearnedDynamics(pred, dt_s=self.dt))
+                self.planner.set_dynamics(self.learned_dynamics(pred, self.cfg.dynamics))
                 self.version = version_of(path, self.version + 1)
                 self.model_path = path
             self.publish_version()
