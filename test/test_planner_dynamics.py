@@ -80,6 +80,9 @@ def test_learned_dynamics_chooses_by_one_capability_check() -> None:
         assert isinstance(learned_dynamics(model(arch, 0)), FusedDynamics)
         assert fused_support(model(arch, 0)) is None
     assert isinstance(learned_dynamics(model("mlp", 0)), ReferenceDynamics)
+    narrow = model("ours", 0, h=4)  # merged kernel (width 6) wider than the window
+    assert "exceeds the history" in fused_support(narrow)
+    assert isinstance(learned_dynamics(narrow), ReferenceDynamics)
 
     class Compensated(ForcePredictor):
         def predict(self, hist, v_next):
@@ -133,14 +136,19 @@ def test_fused_dtype_is_its_own_setting() -> None:
 
 
 def test_fused_variants_without_padding_and_with_large_attention_logits() -> None:
-    """Paddings 0 (no edge positions: h_L comes from the batched step) and attention weights
-    large enough that the softmax needs its max-shift: both still equal the reference."""
+    """Paddings 0 (no edge positions: h_L comes from the batched step), a window with a
+    single interior position (h = merged kernel width), a small network, and attention weights
+    large enough that the softmax needs its max-shift: all still equal the reference."""
     hist, v = history(25, seed=6), torch.rand(5, 20) * 4.0
-    pred = model("ours", 5, kernels=(3, 3, 3), paddings=(0, 0, 0))
-    dyn = fused(pred)
-    assert dyn.weights.schedule.pad == 0
-    torch.testing.assert_close(dyn.rollout(hist, v), ReferenceDynamics(pred).rollout(hist, v),
-                               atol=5e-5, rtol=2e-6)
+    for changes in ({"kernels": (3, 3, 3), "paddings": (0, 0, 0)}, {"h": 6},
+                    {"h": 7, "conv_channels": 2, "attention_hidden": 2, "lstm_hidden": 4,
+                     "fc": (8,)}):
+        pred = model("ours", 5, **changes)
+        dyn = fused(pred)
+        assert dyn.weights.schedule.pad == 0 or "kernels" not in changes
+        torch.testing.assert_close(dyn.rollout(hist, v),
+                                   ReferenceDynamics(pred).rollout(hist, v), atol=5e-5,
+                                   rtol=2e-6)
     pred = model("ours", 5)
     with torch.no_grad():
         pred.body.attention.mlp[2].weight.mul_(40.0)

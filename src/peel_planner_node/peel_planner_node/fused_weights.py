@@ -51,8 +51,9 @@ def fused_support(predictor: Any) -> str | None:
     convs = list(body.conv.convs)
     if any(c.stride != (1,) or c.dilation != (1,) or c.groups != 1 for c in convs):
         return "convolutions with stride, dilation or groups"
-    if Schedule.of(predictor).depth < 1:
-        return "no interior window position (kernel wider than the history)"
+    sch = Schedule.of(predictor)
+    if sch.width > sch.h:  # the wavefront needs an interior position P <= J
+        return f"merged kernel width {sch.width} exceeds the history h = {sch.h}"
     return None
 
 
