@@ -97,10 +97,11 @@ def test_eq38_weights_equal_direct_evaluation() -> None:
 
 
 def test_planner_update_uses_eq38_and_eq31() -> None:
-    """One update of the real planner: its omega is Eq. 38 of its samples, U = sum omega v."""
+    """One update of the real planner: its omega is Eq. 38 (the paper's per-step form) of its
+    samples, U = sum omega v."""
     cfg = config(**{"mppi.n_samples": 7, "mppi.horizon": 3, "mppi.dtype": "float64",
                     "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
-                    "mppi.control_cost_scale": 1.0})
+                    "mppi.control_cost_scale": 1.0, "mppi.control_term": "per_step"})
     planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
     u_before = planner.U.clone()
     u_after = planner.update(append(start_history(), 1.0))
@@ -122,7 +123,8 @@ def test_control_term_uses_the_configured_sigma(which: str) -> None:
     cfg = config(**{"mppi.n_samples": 9, "mppi.horizon": 3, "mppi.dtype": "float64",
                     "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
                     "mppi.sigma_min_count": 1, "mppi.control_cost_scale": 1.0,
-                    "mppi.sigma_min": 0.25, "mppi.control_cost_sigma": which})
+                    "mppi.sigma_min": 0.25, "mppi.control_cost_sigma": which,
+                    "mppi.control_term": "per_step"})
     planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
     planner.observe(2.3, 2.0)
     assert planner.sigma == pytest.approx(0.25)

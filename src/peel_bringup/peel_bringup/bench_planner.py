@@ -308,26 +308,8 @@ STUDY_VARIANTS: dict[str, dict[str, Any]] = {
 }
 
 
-def cost_study(args: argparse.Namespace) -> dict[str, Any]:
-    """Episode cost J of peel variants and pytorch_mppi over tasks x planner seeds at one (N, H).
-
-    Each variant changes one planner setting towards what pytorch_mppi does (fixed Sigma = sigma0
-    instead of the re-estimate with its floor; shift fill u_init instead of the last entry);
-    every (task, seed) pair is run by every variant, so differences are paired. Reports per
-    variant the mean J, its standard error over the task x seed runs, the paired mean difference
-    to pytorch_mppi with its standard error, t_cpl, outcomes and the mean Sigma in use.
-    """
-    from peel_sim_node.config import load_sim_config
-    from peel_sim_node.env import PeelEnv
-    from peel_sim_node.episode import run_episode
-
-    torch.set_num_threads(args.threads)
-    pred, model_info = load_model()
-    n, h = args.study_n, args.study_h
-    base = load_planner_config().replace(**{**args.set, "mppi.n_samples": n, "mppi.horizon": h})
-    cost = Cost(base.cost)
-    tasks = list(range(args.first_task, args.first_task + args.tasks))
-    pseeds = list(range(args.seeds))
+def _study_settings(args: argparse.Namespace) -> tuple[list[str], dict[str, dict]]:
+    """The variant names of --variants (or all) + pytorch_mppi, and each one's overrides."""
     names = [*(args.variants.split(",") if args.variants else STUDY_VARIANTS), "pytorch_mppi"]
     settings = dict(STUDY_VARIANTS)
     for name in names[:-1]:
@@ -336,8 +318,75 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
                 raise PeelError(f"--variants: unknown variant {name!r} (one of "
                                 f"{', '.join(STUDY_VARIANTS)}, or NAME=VALUE[+NAME=VALUE...])")
             settings[name] = parse_sets(name.split("+"))
-    res: dict[str, dict[str, list]] = {k: {"J": [], "t": [], "out": [], "sigma": [],
-                                           "peak": []} for k in names}
+    return names, settings
+
+
+def _study_episode(env: Any, policy: Any, task: int, cost: Cost) -> dict[str, Any]:
+    """One task: J (the paper's), t_cpl, outcome, the mean Sigma in use, the peak force."""
+    from peel_sim_node.episode import run_episode
+
+    policy.reset()
+    sigmas: list[float] = []
+
+    def pol(hist: Trajectory) -> float:
+        u = policy(hist)
+        if isinstance(policy, Planner) and policy.stop is None:
+            sigmas.append(policy.sigma)
+        return u
+
+    traj = run_episode(env, pol, seed=task)
+    return {"J": float(episode_cost_terms(traj, cost)["total"]), "t": float(traj.t_cpl),
+            "out": traj.outcome, "sigma": float(np.mean(sigmas)) if sigmas else float("nan"),
+            "peak": peak_force(traj)}
+
+
+def _study_summary(name: str, runs: list[dict], ref: np.ndarray, settings: dict,
+                   near_miss_n: float, sigma0: float) -> dict[str, Any]:
+    """Mean J, its paired difference to pytorch_mppi, outcomes, near misses, peak forces."""
+    j = np.asarray([r["J"] for r in runs])
+    out, peak = [r["out"] for r in runs], [r["peak"] for r in runs]
+    d, k = j - ref, len(ref)
+    return {
+        "variant": name, "overrides": settings.get(name, {}),
+        "episode_cost": round(float(j.mean()), 4),
+        "sem": round(float(j.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
+        "diff_vs_pytorch_mppi": round(float(d.mean()), 4),
+        "diff_sem": round(float(d.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
+        "t_cpl_s": round(float(np.mean([r["t"] for r in runs])), 3),
+        "done": out.count("done"), "safety_stop": out.count("safety_stop"),
+        # a near miss: a task without a safety stop whose peak |F| reached near_miss_n
+        "near_miss": sum(1 for o, f in zip(out, peak, strict=True)
+                         if o != "safety_stop" and f >= near_miss_n),
+        "peak_force_n": {"mean": round(float(np.mean(peak)), 3),
+                         "p90": round(float(np.percentile(peak, 90)), 3),
+                         "max": round(float(np.max(peak)), 3)},
+        "mean_sigma": (round(float(np.nanmean([r["sigma"] for r in runs])), 4)
+                       if name != "pytorch_mppi" else sigma0),
+        "episode_costs": [round(x, 4) for x in j.tolist()],
+    }
+
+
+def cost_study(args: argparse.Namespace) -> dict[str, Any]:
+    """Episode cost J of peel variants and pytorch_mppi over tasks x planner seeds at one (N, H).
+
+    Each variant plans with its own settings (cost critics included); J is always the paper's
+    (the base config's paper critics). Every (task, seed) pair is run by every variant, so
+    differences are paired. Reports per variant the mean J, its standard error over the task x
+    seed runs, the paired mean difference to pytorch_mppi with its standard error, t_cpl,
+    outcomes, near misses (``--near-miss-n``), peak forces and the mean Sigma in use.
+    """
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.env import PeelEnv
+
+    torch.set_num_threads(args.threads)
+    pred, model_info = load_model()
+    n, h = args.study_n, args.study_h
+    base = load_planner_config().replace(**{**args.set, "mppi.n_samples": n, "mppi.horizon": h})
+    cost = Cost(base.cost)
+    tasks = list(range(args.first_task, args.first_task + args.tasks))
+    pseeds = list(range(args.seeds))
+    names, settings = _study_settings(args)
+    res: dict[str, list[dict]] = {k: [] for k in names}
     env = PeelEnv(load_sim_config(), seed=0)
     bar = tqdm(total=len(names) * len(tasks) * len(pseeds), desc="cost study",
                disable=not args.progress, file=sys.stderr)
@@ -350,59 +399,17 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
                     cfg = base.replace(**{**settings[name], "mppi.seed": ps})
                     policy = Planner(learned_dynamics(pred, cfg.dynamics), Cost(cfg.cost), cfg)
                 for task in tasks:
-                    policy.reset()
-                    sigmas: list[float] = []
-                    if isinstance(policy, Planner):
-                        inner = policy
-
-                        def pol(hist: Trajectory, inner: Planner = inner,
-                                sigmas: list[float] = sigmas) -> float:
-                            u = inner.plan(hist)
-                            if inner.stop is None:
-                                sigmas.append(inner.sigma)
-                            return u
-                    else:
-                        pol = policy
-                    traj = run_episode(env, pol, seed=task)
-                    r = res[name]
-                    r["J"].append(float(episode_cost_terms(traj, cost)["total"]))
-                    r["t"].append(float(traj.t_cpl))
-                    r["out"].append(traj.outcome)
-                    r["sigma"].append(float(np.mean(sigmas)) if sigmas else float("nan"))
-                    r["peak"].append(peak_force(traj))
+                    res[name].append(_study_episode(env, policy, task, cost))
                     bar.update(1)
     finally:
         bar.close()
         env.close()
-    ref = np.asarray(res["pytorch_mppi"]["J"])
-    k = len(ref)
-    variants = []
-    for name in names:
-        j = np.asarray(res[name]["J"])
-        d = j - ref
-        variants.append({
-            "variant": name, "overrides": settings.get(name, {}),
-            "episode_cost": round(float(j.mean()), 4),
-            "sem": round(float(j.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
-            "diff_vs_pytorch_mppi": round(float(d.mean()), 4),
-            "diff_sem": round(float(d.std(ddof=1) / np.sqrt(k)), 4) if k > 1 else None,
-            "t_cpl_s": round(float(np.mean(res[name]["t"])), 3),
-            "done": res[name]["out"].count("done"),
-            "safety_stop": res[name]["out"].count("safety_stop"),
-            # a near miss: a task without a safety stop whose peak |F| reached near_miss_n
-            "near_miss": sum(1 for o, f in zip(res[name]["out"], res[name]["peak"], strict=True)
-                             if o != "safety_stop" and f >= args.near_miss_n),
-            "peak_force_n": {"mean": round(float(np.mean(res[name]["peak"])), 3),
-                             "p90": round(float(np.percentile(res[name]["peak"], 90)), 3),
-                             "max": round(float(np.max(res[name]["peak"])), 3)},
-            "mean_sigma": (round(float(np.nanmean(res[name]["sigma"])), 4)
-                           if name != "pytorch_mppi" else base.mppi.sigma0),
-            "episode_costs": [round(x, 4) for x in res[name]["J"]],
-        })
+    ref = np.asarray([r["J"] for r in res["pytorch_mppi"]])
     return {"benchmark": "planner_cost_study", "model": model_info, "n": n, "h": h,
             "base_overrides": args.set, "near_miss_n": args.near_miss_n,
-            "tasks": tasks, "planner_seeds": pseeds, "runs_per_variant": k,
-            "variants": variants}
+            "tasks": tasks, "planner_seeds": pseeds, "runs_per_variant": len(ref),
+            "variants": [_study_summary(name, res[name], ref, settings, args.near_miss_n,
+                                        base.mppi.sigma0) for name in names]}
 
 
 def peak_force(traj: Trajectory) -> float:
