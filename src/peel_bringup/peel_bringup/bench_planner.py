@@ -459,9 +459,54 @@ def cost_terms(args: argparse.Namespace) -> dict[str, Any]:
             "h": args.study_h, "tasks": tasks, "plans": len(rows), "base_overrides": args.set,
             "terms": {name: {
                 "mean_reduction": round(float(np.mean([r[name] for r in rows])), 5),
+                "median_reduction": round(float(np.median([r[name] for r in rows])), 5),
                 "largest_reduction_share": round(top.count(name) / len(rows), 4),
                 "weighted_mean": round(float(np.mean([r[name] for r in weighted])), 4),
             } for name in names}}
+
+
+def exactness(args: argparse.Namespace) -> dict[str, Any]:
+    """Fused vs reference dynamics on the model from a simulator history, commands uniform in
+    0.5-8 mm/s: each in float32 and float64 against the float64 reference (max and quantiles
+    of each sample's largest force error, N)."""
+    import copy
+
+    from peel_planner_node.config import DynamicsConfig, FusedConfig
+    from peel_planner_node.dynamics import ReferenceDynamics
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.env import PeelEnv
+
+    torch.set_num_threads(args.threads)
+    pred, model_info = load_model()
+    pred64 = copy.deepcopy(pred).double()
+    env = PeelEnv(load_sim_config(), seed=0)
+    cases = {}
+    try:
+        for seed, (n, s) in ((1000, (50, 25)), (1001, (1000, 50))):
+            env.reset(seed=seed)
+            for _ in range(20):
+                env.step(2.0)
+            hist = env.history
+            v = 0.5 + 7.5 * torch.rand(n, s, generator=torch.Generator().manual_seed(seed),
+                                       dtype=torch.float64)
+            want = ReferenceDynamics(pred64).rollout(hist, v)
+            runs = {"reference_float32": ReferenceDynamics(pred).rollout(hist, v.float()),
+                    **{f"fused_{dt}": learned_dynamics(pred, DynamicsConfig(
+                        fused=FusedConfig(dtype=dt))).rollout(hist, v.to(torch.float64 if dt
+                                                                         == "float64" else
+                                                                         torch.float32))
+                       for dt in ("float32", "float64")}}
+            cases[f"{n}x{s}"] = {name: _errors(out.double() - want) for name, out in runs.items()}
+    finally:
+        env.close()
+    return {"benchmark": "planner_exactness", "model": model_info,
+            "against": "reference dynamics in float64", "cases": cases}
+
+
+def _errors(diff: torch.Tensor) -> dict[str, float]:
+    per_sample = diff[..., 1:].abs().amax(dim=(1, 2))
+    return {"max_n": float(per_sample.max()), "median_n": float(per_sample.median()),
+            "p99_n": float(per_sample.quantile(0.99)), "q_max_mm": float(diff[..., 0].abs().max())}
 
 
 def parse_sets(items: list[str]) -> dict[str, Any]:
@@ -504,6 +549,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cost-terms", action="store_true",
                     help="instead of the benchmark: which cost critic drives the plans over "
                          "--tasks at (--study-n, --study-h)")
+    ap.add_argument("--exactness", action="store_true",
+                    help="instead of the benchmark: fused vs reference dynamics against the "
+                         "float64 reference")
     ap.add_argument("--near-miss-n", type=float, default=18.0,
                     help="--cost-study: a task without a safety stop whose peak |F| reaches "
                          "this (N) is a near miss (18 = 90 %% of the 20 N prewarning)")
@@ -526,7 +574,8 @@ def main(argv: list[str] | None = None) -> int:
     args.floor = not args.no_floor
     if args.near_miss_n <= 0 or not np.isfinite(args.near_miss_n):
         raise PeelError("--near-miss-n must be a positive number of newtons")
-    job = cost_study if args.cost_study else cost_terms if args.cost_terms else run
+    job = (cost_study if args.cost_study else cost_terms if args.cost_terms
+           else exactness if args.exactness else run)
     print(json.dumps(job(args), indent=2))
     return 0
 
