@@ -58,26 +58,49 @@ from peel_msgs_py.trajectory import Trajectory
 from .config import BarrierConfig, CostConfig, ForceConfig
 
 
-@dataclass(frozen=True)
+@dataclass
 class Rollouts:
     """What the critics score: N sequences of S samples (nav2's ``CriticData``).
 
     ``q`` [N, S] positions capped at q_ter (mm); ``dq`` [N, S] = q_t - q_{t-1} (capped);
-    ``fx``, ``fz`` [N, S] forces (N); ``active`` [N, S] 1 where the task still runs in sample t
-    (q_{t-1} < q_ter), else 0; ``t`` [S] sample times from the task start (s); ``reached`` [N]
-    q_ter reached; ``t_reach`` [N] when (the last sample's time where never); ``task_over``: the
-    last sample ends the task (a finished trajectory) rather than a planning horizon.
+    ``forces`` [N, S, 2] (F_RX, F_RZ in N; ``fx``, ``fz`` are its columns); ``active`` [N, S]
+    1 where the task still runs in sample t (q_{t-1} < q_ter), else 0; ``t_end`` the last
+    sample's time from the task start (s); ``task_over``: the last sample ends the task (a
+    finished trajectory) rather than a planning horizon. :meth:`reach` gives whether and when
+    each sequence reached q_ter (computed on first use: only phi needs it, and only late in a
+    task).
     """
 
     q: torch.Tensor
     dq: torch.Tensor
-    fx: torch.Tensor
-    fz: torch.Tensor
+    forces: torch.Tensor
     active: torch.Tensor
-    t: torch.Tensor
-    reached: torch.Tensor
-    t_reach: torch.Tensor
+    t_end: float
     task_over: bool
+    q_ter: float
+    dt: float
+    reached: torch.Tensor | None = None
+    t_reach: torch.Tensor | None = None
+
+    @property
+    def fx(self) -> torch.Tensor:
+        return self.forces[..., 0]
+
+    @property
+    def fz(self) -> torch.Tensor:
+        return self.forces[..., 1]
+
+    def reach(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """[N] q_ter reached by the last sample, and [N] the time of the first sample at q_ter
+        (the last sample's time where never)."""
+        if self.reached is None:
+            s = self.q.shape[1]
+            t = self.t_end - self.dt * torch.arange(s - 1, -1, -1, dtype=self.q.dtype)
+            hit = self.q >= self.q_ter
+            first = torch.argmax(hit.to(torch.int8), dim=1)  # first sample at q_ter (0: none)
+            self.reached = hit[:, -1]
+            self.t_reach = torch.where(self.reached, t[first], t[-1])
+        return self.reached, self.t_reach
 
     @classmethod
     def predicted(cls, q_prev: float | torch.Tensor, t_now: float, out: torch.Tensor,
@@ -85,13 +108,9 @@ class Rollouts:
         """Rollouts ``out`` [N, S, 3] (q_mm, fx_N, fz_N) of the samples t_now + dt .. t_now +
         S dt (S >= 1), from the measured ``q_prev`` at t_now (float, or [N] per sequence)."""
         q, dq, active = _positions(q_prev, out[..., 0], cfg.q_ter_mm)
-        t = t_now + cfg.dt_s * torch.arange(1, q.shape[1] + 1, dtype=q.dtype)
-        hit = q >= cfg.q_ter_mm
-        first = torch.argmax(hit.to(torch.int8), dim=1)  # first sample at q_ter (0 if none)
-        reached = hit[:, -1]
-        return cls(q=q, dq=dq, fx=out[..., 1], fz=out[..., 2], active=active, t=t,
-                   reached=reached, t_reach=torch.where(reached, t[first], t[-1]),
-                   task_over=False)
+        return cls(q=q, dq=dq, forces=out[..., 1:3], active=active,
+                   t_end=t_now + q.shape[1] * cfg.dt_s, task_over=False, q_ter=cfg.q_ter_mm,
+                   dt=cfg.dt_s)
 
     @classmethod
     def measured(cls, traj: Trajectory, cfg: CostConfig) -> Rollouts:
@@ -109,15 +128,10 @@ class Rollouts:
                                    cfg.q_ter_mm)
         t_end = float(cols["t"][-1] - cols["t"][0])
         reached = bool(cols["q"][-1] >= cfg.q_ter_mm - 1e-9) or traj.outcome == "done"
-        return cls(q=q, dq=dq, fx=torch.tensor(cols["fx"][None, 1:]),
-                   fz=torch.tensor(cols["fz"][None, 1:]), active=active,
-                   t=torch.tensor(cols["t"][1:] - cols["t"][0]), reached=torch.tensor([reached]),
-                   t_reach=torch.tensor([t_end], dtype=torch.float64), task_over=True)
-
-    @property
-    def t_end(self) -> float:
-        """Time of the last sample (s from the task start); 0 for an empty sequence."""
-        return float(self.t[-1]) if self.t.numel() else 0.0
+        forces = torch.tensor(np.stack([cols["fx"][1:], cols["fz"][1:]], axis=-1)[None])
+        return cls(q=q, dq=dq, forces=forces, active=active, t_end=t_end, task_over=True,
+                   q_ter=cfg.q_ter_mm, dt=cfg.dt_s, reached=torch.tensor([reached]),
+                   t_reach=torch.tensor([t_end], dtype=torch.float64))
 
 
 def _positions(q_prev: float | torch.Tensor, q_raw: torch.Tensor,
@@ -193,14 +207,20 @@ class BarrierCritic(RunningCritic):
     def __init__(self, cfg: BarrierConfig) -> None:
         self.cfg = cfg
         self.per_n2 = cfg.weight / max(cfg.f_prewarn_n - cfg.start_n, 1e-9) ** 2
+        self._axis_weights: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def sample_costs(self, r: Rollouts) -> torch.Tensor:
         c = self.cfg
-        out = torch.zeros_like(r.fx)
-        for f in (r.fx.abs(), r.fz.abs()):
-            over = (f - c.start_n).clamp_(min=0.0)
-            out += self.per_n2 * over * over
-            out += c.stop_weight * (f >= c.f_prewarn_n).to(f.dtype)
+        f = r.forces.abs()  # both axes at once, [N, S, 2]
+        key = (f.dtype, f.device)
+        if key not in self._axis_weights:  # the sums over the 2 axes as matmuls (faster)
+            self._axis_weights[key] = tuple(torch.full((2,), w, dtype=f.dtype, device=f.device)
+                                            for w in (self.per_n2, c.stop_weight))
+        quadratic, stop = self._axis_weights[key]
+        over = (f - c.start_n).clamp_(min=0.0)
+        out = torch.matmul(over * over, quadratic)
+        if c.stop_weight:
+            out += torch.matmul((f >= c.f_prewarn_n).to(f.dtype), stop)
         return out
 
 
@@ -216,10 +236,12 @@ class TerminalCritic(Critic):
         self.t_max, self.late, self.fail = cfg.t_max_s, c.weight * c.phi_late, c.weight * c.phi_fail
 
     def score(self, r: Rollouts) -> torch.Tensor:
-        dtype = r.t_reach.dtype
-        on_time = torch.where(r.t_reach > self.t_max, self.late, 0.0).to(dtype)
+        if not r.task_over and r.t_end <= self.t_max:  # reached or not: phi = 0 until t_max
+            return torch.zeros(r.q.shape[0], dtype=r.q.dtype, device=r.q.device)
+        reached, t_reach = r.reach()
+        on_time = torch.where(t_reach > self.t_max, self.late, 0.0).to(t_reach.dtype)
         failed = self.fail if (r.task_over or r.t_end > self.t_max) else 0.0
-        return torch.where(r.reached, on_time, torch.full_like(r.t_reach, failed))
+        return torch.where(reached, on_time, torch.full_like(t_reach, failed))
 
 
 class CostToGoCritic(Critic):
@@ -293,13 +315,9 @@ class Cost:
 
 def total(terms: dict[str, torch.Tensor]) -> torch.Tensor:
     """The sum of the critics' costs."""
-    values = list(terms.values())
-    if not values:
+    if not terms:
         raise PeelError("the cost has no critics")
-    out = values[0].clone()
-    for v in values[1:]:
-        out += v
-    return out
+    return torch.stack(list(terms.values())).sum(dim=0)
 
 
 def episode_cost_terms(traj: Trajectory, cost: Cost) -> dict[str, float | bool]:
@@ -312,7 +330,7 @@ def episode_cost_terms(traj: Trajectory, cost: Cost) -> dict[str, float | bool]:
     r = Rollouts.measured(traj, cost.cfg)
     terms = {name: float(v[0]) for name, v in cost.terms(r, paper_only=True).items()}
     return {**terms, "total": float(sum(terms.values())), "t_cpl": r.t_end,
-            "reached": bool(r.reached[0])}
+            "reached": bool(r.reach()[0][0])}
 
 
 def episode_cost(traj: Trajectory, cost: Cost) -> float:
