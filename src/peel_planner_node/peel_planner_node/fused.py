@@ -30,6 +30,11 @@ fewer operations, fewer FLOPs and no per-step allocation:
 * **LSTM by hand, gate-major** (i, f, o, g; ``fused_workspace.py``). torch's fused
   ``torch.lstm`` / ``nn.LSTM`` was measured slower here (docs/planner.md): it recomputes the
   input projection of all positions and allocates per call.
+* **sigmoid for tanh.** In this torch build tanh runs 5-6x slower than sigmoid on this CPU
+  (docs/planner.md). tanh(x) = 2 sigmoid(2x) - 1: the g gate's weights are doubled, so one
+  sigmoid covers all four gates; tanh(c) is 2 sigmoid(c + c) - 1; the attention's tanh layer
+  has its weights doubled and the next layer absorbs the 2 s - 1 (``fused_weights.rearrange``).
+  Float rounding only.
 * **Biases inside the matmuls**: the input projection reads [weighted S, 1] (a ones column
   carries b), every FC layer after the first reads [y, 1]; the first FC layer's v_{k+1} term and
   bias are computed for all S steps in one op before the loop; the last layer carries the
@@ -54,17 +59,19 @@ from .fused_weights import FusedWeights, Schedule, Weights
 from .fused_workspace import Workspace, build_workspace
 
 
-def lstm_pointwise(gates_ifo: torch.Tensor, sig_ifo: torch.Tensor, gate_g: torch.Tensor,
-                   tanh_g: torch.Tensor, c: torch.Tensor, sig_f: torch.Tensor,
-                   sig_i: torch.Tensor, tanh_c: torch.Tensor, sig_o: torch.Tensor,
-                   h_out: torch.Tensor) -> None:
-    """Eq. 11-16 after the gate pre-activations: sigma(i, f, o), tanh(g), c = f c + i g,
-    h = o tanh(c), all into preallocated views."""
-    torch.sigmoid(gates_ifo, out=sig_ifo)
-    torch.tanh(gate_g, out=tanh_g)
-    c.mul_(sig_f).addcmul_(sig_i, tanh_g)
-    torch.tanh(c, out=tanh_c)
+def lstm_pointwise(gates: torch.Tensor, sig: torch.Tensor, c: torch.Tensor,
+                   sig_i: torch.Tensor, sig_f: torch.Tensor, sig_g: torch.Tensor,
+                   tanh_c: torch.Tensor, sig_o: torch.Tensor, h_out: torch.Tensor) -> None:
+    """Eq. 11-16 after the gate pre-activations (i, f, o, 2g): one sigmoid for all four,
+    c = f c + i tanh(g) with tanh(g) = 2 sigmoid(2g) - 1, h = o tanh(c) = 2 o sigmoid(2c) - o
+    (tanh is 5-6x slower than sigmoid in this torch build), all into preallocated views,
+    without Python scalars (each became a tensor conversion). ``tanh_c`` holds sigmoid(2c)."""
+    torch.sigmoid(gates, out=sig)
+    c.mul_(sig_f).addcmul_(sig_i, sig_g, value=2.0).sub_(sig_i)
+    torch.add(c, c, out=tanh_c)
+    tanh_c.sigmoid_()
     torch.mul(sig_o, tanh_c, out=h_out)
+    h_out.add_(h_out).sub_(sig_o)
 
 
 def run_prologue(ws: Workspace, w: Weights, sch: Schedule, base_norm: torch.Tensor) -> None:
@@ -76,7 +83,7 @@ def run_prologue(ws: Workspace, w: Weights, sch: Schedule, base_norm: torch.Tens
     torch.addmm(w.conv_all_bias, ws.prologue_windows, w.conv_all, out=conv)  # Eq. 7
     conv.relu_()
     torch.addmm(w.att1_bias, p["conv_rows"], w.att1_weight_t, out=p["att_hidden"])  # Eq. 8
-    p["att_hidden"].tanh_()
+    p["att_hidden"].sigmoid_()  # tanh, with the weights rearranged
     logits = torch.addmm(w.att2_bias, p["att_hidden"], w.att2_weight_t)
     # softmax over the scales (Eq. 9); torch.softmax is slow for a last dim of 3
     e = torch.exp(logits - logits.amax(dim=-1, keepdim=True)) if w.att_shift else logits.exp_()
@@ -84,10 +91,9 @@ def run_prologue(ws: Workspace, w: Weights, sch: Schedule, base_norm: torch.Tens
     torch.addmm(w.bx, p["conv_rows"], w.wx_t, out=p["x_proj"])
     ws.prologue_h.zero_()
     ws.prologue_c.zero_()
-    for (x_proj, h, c, gates, gates_ifo, gate_g, sig_ifo, sig_i, sig_f, sig_o, tanh_g,
-         tanh_c) in ws.prologue_cells:
+    for x_proj, h, c, gates, sig, sig_i, sig_f, sig_g, sig_o, tanh_c in ws.prologue_cells:
         torch.addmm(x_proj, h, w.wh_t, out=gates)
-        lstm_pointwise(gates_ifo, sig_ifo, gate_g, tanh_g, c, sig_f, sig_i, tanh_c, sig_o, h)
+        lstm_pointwise(gates, sig, c, sig_i, sig_f, sig_g, tanh_c, sig_o, h)
     depth, n, hid = sch.depth, ws.n, sch.hidden
     ws.h[:depth].copy_(ws.prologue_h.unsqueeze(1).expand(depth, n, hid))
     ws.c[:depth].copy_(ws.prologue_c.unsqueeze(1).expand(depth, n, hid))
@@ -109,7 +115,7 @@ def run_steps(ws: Workspace, w: Weights) -> None:
         addmm(w.conv_wave_bias, window, w.conv_wave, out=sh.conv)
         sh.conv.relu_()
         addmm(w.att1_bias, sh.conv_rows, w.att1_weight_t, out=sh.att_hidden)
-        sh.att_hidden.tanh_()
+        sh.att_hidden.sigmoid_()  # tanh, with the weights rearranged
         addmm(w.att2_bias, sh.att_hidden, w.att2_weight_t, out=sh.att_logits)
         if w.att_shift:
             sh.att_logits.sub_(sh.att_logits.amax(dim=-1, keepdim=True))
@@ -124,12 +130,11 @@ def run_steps(ws: Workspace, w: Weights) -> None:
         gates_interior.add_(sh.x_proj_interior)
         if edge_proj is not None:
             gates_edge.add_(edge_proj)
-        for (x_proj, c_h_prev, c_gates, gates_ifo, sig_ifo, gate_g, tanh_g, c, sig_f, sig_i,
-             tanh_c, sig_o, h_out) in cells:
+        for (x_proj, c_h_prev, c_gates, sig, c, sig_i, sig_f, sig_g, tanh_c, sig_o,
+             h_out) in cells:
             if x_proj is not None:
                 baddbmm(x_proj, c_h_prev, w.wh_gates, out=c_gates)
-            lstm_pointwise(gates_ifo, sig_ifo, gate_g, tanh_g, c, sig_f, sig_i, tanh_c, sig_o,
-                           h_out)
+            lstm_pointwise(c_gates, sig, c, sig_i, sig_f, sig_g, tanh_c, sig_o, h_out)
         if h_last_window is not None:
             sh.h_last.copy_(h_last_window)
         addmm(fc1_v_bias, sh.h_last, w.fc1_h_t, out=sh.fc_out[0])

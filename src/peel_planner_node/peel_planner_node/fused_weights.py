@@ -116,14 +116,15 @@ class Schedule:
 
 @dataclass(frozen=True)
 class Weights:
-    """The predictor's weights rearranged for the fused ops (gates in the order i, f, o, g)."""
+    """The predictor's weights rearranged for the fused ops (gates in the order i, f, o, g; the
+    g gate's rows doubled: tanh(g) = 2 sigmoid(2g) - 1)."""
 
     conv_wave: torch.Tensor       # [h*4, len(wave)*C]: the conv of the wavefront positions
     conv_wave_bias: torch.Tensor  # [len(wave)*C]
     conv_all: torch.Tensor        # [h*4, L*C]: the conv of every position (prologue)
     conv_all_bias: torch.Tensor   # [L*C]
-    att1_weight_t: torch.Tensor   # attention MLP (Eq. 8), transposed
-    att1_bias: torch.Tensor
+    att1_weight_t: torch.Tensor   # attention MLP (Eq. 8), transposed, first layer doubled and
+    att1_bias: torch.Tensor       # the second folded so that sigmoid replaces tanh (rearrange)
     att2_weight_t: torch.Tensor
     att2_bias: torch.Tensor
     att_shift: bool               # the softmax (Eq. 9) needs its max-shift
@@ -173,8 +174,10 @@ class FusedWeights:
 
 
 def _ifog(w: torch.Tensor, hid: int) -> torch.Tensor:
-    """Gate rows f, i, g, o (the model's order, Eq. 11-16) -> i, f, o, g."""
-    return torch.cat([w[hid:2 * hid], w[:hid], w[3 * hid:], w[2 * hid:3 * hid]])
+    """Gate rows f, i, g, o (the model's order, Eq. 11-16) -> i, f, o, 2g: the g rows doubled,
+    so one sigmoid covers all four gates and tanh(g) = 2 sigmoid(2g) - 1 (tanh is 5-6x slower
+    than sigmoid on this machine's torch build, docs/planner.md)."""
+    return torch.cat([w[hid:2 * hid], w[:hid], w[3 * hid:], 2.0 * w[2 * hid:3 * hid]])
 
 
 def _merged_kernel(convs: list, sch: Schedule) -> tuple[torch.Tensor, torch.Tensor]:
@@ -217,6 +220,8 @@ def rearrange(p: Any, sch: Schedule, dtype: torch.dtype | None = None) -> Weight
     reg = [m for m in body.regressor if isinstance(m, nn.Linear)]
     w_x, b_x, w_h = (_ifog(lstm.w_x.weight, hid), _ifog(lstm.w_x.bias, hid),
                      _ifog(lstm.w_h.weight, hid))
+    # attention (Eq. 8) with sigmoid for tanh: W_2 tanh(a) + b_2 = 2 W_2 sigmoid(2a) + b_2 - W_2 1
+    w_a2 = mlp[2].weight
     # the head returns F_k + out_mean + out_std dF (normalised inputs): fold scale and shift
     scale, shift = p.out_std / p.in_std[2:4], p.out_mean / p.in_std[2:4]
     head = torch.cat([reg[-1].weight.t() * scale, (reg[-1].bias * scale + shift).unsqueeze(0)])
@@ -226,10 +231,10 @@ def rearrange(p: Any, sch: Schedule, dtype: torch.dtype | None = None) -> Weight
         conv_wave_bias=bias.repeat(len(sch.wave)),
         conv_all=_conv_matrix(kernel, sch, [(0, j) for j in range(sch.length)]),
         conv_all_bias=bias.repeat(sch.length),
-        att1_weight_t=mlp[0].weight.t().contiguous(), att1_bias=mlp[0].bias.clone(),
-        att2_weight_t=mlp[2].weight.t().contiguous(), att2_bias=mlp[2].bias.clone(),
+        att1_weight_t=(2.0 * mlp[0].weight).t().contiguous(), att1_bias=2.0 * mlp[0].bias,
+        att2_weight_t=(2.0 * w_a2).t().contiguous(), att2_bias=mlp[2].bias - w_a2.sum(dim=1),
         # |logit| <= sum |W_2| + |b_2| (tanh is bounded): exp() cannot overflow below ~88
-        att_shift=bool((mlp[2].weight.abs().sum(dim=1) + mlp[2].bias.abs()).max() > 60.0),
+        att_shift=bool((w_a2.abs().sum(dim=1) + mlp[2].bias.abs()).max() > 60.0),
         scale_expand=torch.kron(torch.eye(sch.n_scales, dtype=kernel.dtype,
                                           device=kernel.device), ones),
         wx_t=w_x.t().contiguous(), bx=b_x.contiguous(), wh_t=w_h.t().contiguous(),

@@ -6,8 +6,8 @@ cost more in page faults than its matmul at N = 1000. The loop (Python in ``fuse
 ``csrc/rollout_loop.cpp``) reads these records by field name; the C++ loop receives them as
 dicts of named tensors (``native_loop.bind``).
 
-Layouts: LSTM gates are gate-major [4, rows, hidden] in the order i, f, o, g, so one sigmoid
-covers i, f, o and every elementwise op reads contiguous memory (on column slices of a
+Layouts: LSTM gates are gate-major [4, rows, hidden] in the order i, f, o, g (g doubled), so
+one sigmoid covers all four and every elementwise op reads contiguous memory (on column slices of a
 [rows, 4 hidden] matrix tanh was 4x slower at N = 50, docs/planner.md). Wavefront projections
 are position-major (row = position * N + sample). Regressor activations carry a ones column, so
 each next layer's bias is a row of its weight matrix (``addmm`` would copy a bias first).
@@ -24,20 +24,18 @@ from .fused_weights import Schedule, Weights
 
 
 class Cell(NamedTuple):
-    """One LSTM cell update (Eq. 11-16) over ``rows`` rows, gate-major (i, f, o, g)."""
+    """One LSTM cell update (Eq. 11-16) over ``rows`` rows, gate-major (i, f, o, 2g)."""
 
     x_proj: torch.Tensor | None  # W_x x + b of these rows, added with W_h h (None: in gates)
     h_prev: torch.Tensor         # h_{t-1} [rows, hid] expanded to [4, rows, hid]
-    gates: torch.Tensor          # pre-activations [4, rows, hid]
-    gates_ifo: torch.Tensor      # gates[:3]
-    sig_ifo: torch.Tensor        # sigmoid(i, f, o) [3, rows, hid]
-    gate_g: torch.Tensor         # gates[3]
-    tanh_g: torch.Tensor         # tanh(g) [rows, hid]
+    gates: torch.Tensor          # pre-activations [4, rows, hid] (the g gate doubled)
+    sig: torch.Tensor            # sigmoid of all four [4, rows, hid]
     c: torch.Tensor              # cell state [rows, hid], updated in place
-    sig_f: torch.Tensor          # sig_ifo[1]
-    sig_i: torch.Tensor          # sig_ifo[0]
-    tanh_c: torch.Tensor         # tanh(c) [rows, hid]
-    sig_o: torch.Tensor          # sig_ifo[2]
+    sig_i: torch.Tensor          # sig[0]
+    sig_f: torch.Tensor          # sig[1]
+    sig_g: torch.Tensor          # sig[3] = sigmoid(2g): tanh(g) = 2 sig_g - 1
+    tanh_c: torch.Tensor         # sigmoid(2c) [rows, hid]: tanh(c) = 2 tanh_c - 1
+    sig_o: torch.Tensor          # sig[2]
     h_out: torch.Tensor          # h_t [rows, hid]
 
 
@@ -63,7 +61,7 @@ class Shared(NamedTuple):
     conv: torch.Tensor            # conv of the wavefront positions [N, nw*C]
     conv_rows: torch.Tensor       # the same as [N*nw, C] (sample-major rows)
     conv_by_sample: torch.Tensor  # the same as [N, nw, C]
-    att_hidden: torch.Tensor      # tanh(W_1 S + b_1) [N*nw, a_hid] (Eq. 8)
+    att_hidden: torch.Tensor      # sigmoid(2 (W_1 S + b_1)) [N*nw, a_hid] (Eq. 8, rearranged)
     att_logits: torch.Tensor      # [N*nw, n_scales], turned into the softmax in place (Eq. 9)
     att_sum: torch.Tensor         # [N*nw, 1]
     scale_weights: torch.Tensor   # each scale's weight over its channels [N*nw, C]
@@ -78,19 +76,17 @@ class Shared(NamedTuple):
 
 
 class PrologueCell(NamedTuple):
-    """Windows 0..i at absolute position i (batch 1 each), gates as columns i, f, o, g."""
+    """Windows 0..i at absolute position i (batch 1 each), gates as columns i, f, o, 2g."""
 
     x_proj: torch.Tensor   # their W_x x + b [i + 1, 4 hid] (strided view)
     h: torch.Tensor        # [i + 1, hid], updated in place
     c: torch.Tensor
     gates: torch.Tensor    # [i + 1, 4 hid]
-    gates_ifo: torch.Tensor
-    gate_g: torch.Tensor
-    sig_ifo: torch.Tensor
-    sig_i: torch.Tensor
+    sig: torch.Tensor      # sigmoid of all four [i + 1, 4 hid]
+    sig_i: torch.Tensor    # its column blocks
     sig_f: torch.Tensor
+    sig_g: torch.Tensor
     sig_o: torch.Tensor
-    tanh_g: torch.Tensor
     tanh_c: torch.Tensor
 
 
@@ -169,13 +165,13 @@ def _steps(sch: Schedule, buffer: torch.Tensor, sh: Shared, h_state: torch.Tenso
         """Windows k0..k0+count-1 (rows of the per-window LSTM state)."""
         m = count * n
         if m not in gate_bufs:
-            gate_bufs[m] = (e(4, m, hid), e(3, m, hid), e(m, hid), e(m, hid))
-        gates, sig, tanh_g, tanh_c = gate_bufs[m]
+            gate_bufs[m] = (e(4, m, hid), e(4, m, hid), e(m, hid))
+        gates, sig, tanh_c = gate_bufs[m]
         h_view = h_state[k0:k0 + count].view(m, hid)
         return Cell(x_proj=x_proj, h_prev=h_view.unsqueeze(0).expand(4, m, hid), gates=gates,
-                    gates_ifo=gates[:3], sig_ifo=sig, gate_g=gates[3], tanh_g=tanh_g,
-                    c=c_state[k0:k0 + count].view(m, hid), sig_f=sig[1], sig_i=sig[0],
-                    tanh_c=tanh_c, sig_o=sig[2], h_out=h_view if h_out is None else h_out)
+                    sig=sig, c=c_state[k0:k0 + count].view(m, hid), sig_i=sig[0],
+                    sig_f=sig[1], sig_g=sig[3], tanh_c=tanh_c, sig_o=sig[2],
+                    h_out=h_view if h_out is None else h_out)
 
     bottom = [sh.x_proj[:, (pad + p) * n:(pad + p + 1) * n] for p in range(1, pad + 1)]
     steps = []
@@ -207,15 +203,14 @@ def _prologue(sch: Schedule, w: Weights, e) -> dict:
                "conv_by_scale": conv.view(depth * length, sch.n_scales, sch.channels),
                "att_hidden": e(depth * length, w.att1_weight_t.shape[1]), "x_proj": x_proj}
     h_p, c_p, gates = e(depth, hid), e(depth, hid), e(depth, 4 * hid)
-    sig, tanh_g, tanh_c = e(depth, 3 * hid), e(depth, hid), e(depth, hid)
+    sig, tanh_c = e(depth, 4 * hid), e(depth, hid)
     cells = []
     for i in range(sch.last_interior):  # windows 0..i at positions i - d: absolute position i
         a = i + 1
         cells.append(PrologueCell(
             x_proj=x_proj.as_strided((a, 4 * hid), ((length - 1) * 4 * hid, 1), i * 4 * hid),
-            h=h_p[:a], c=c_p[:a], gates=gates[:a], gates_ifo=gates[:a, :3 * hid],
-            gate_g=gates[:a, 3 * hid:], sig_ifo=sig[:a], sig_i=sig[:a, :hid],
-            sig_f=sig[:a, hid:2 * hid], sig_o=sig[:a, 2 * hid:], tanh_g=tanh_g[:a],
+            h=h_p[:a], c=c_p[:a], gates=gates[:a], sig=sig[:a], sig_i=sig[:a, :hid],
+            sig_f=sig[:a, hid:2 * hid], sig_g=sig[:a, 3 * hid:], sig_o=sig[:a, 2 * hid:3 * hid],
             tanh_c=tanh_c[:a]))
     return {"prologue_rows": rows,
             "prologue_windows": rows.view(-1).as_strided((depth, h * 4), (4, 1)),

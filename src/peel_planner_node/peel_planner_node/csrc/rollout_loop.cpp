@@ -29,16 +29,14 @@ std::optional<at::Tensor> maybe(const Named& m, const char* name) {
   return it->second;
 }
 
-// One LSTM cell update (Eq. 11-16), gate-major [4, rows, hid], gates i, f, o, g (Cell).
+// One LSTM cell update (Eq. 11-16), gate-major [4, rows, hid], gates i, f, o, 2g (Cell).
 struct Cell {
   std::optional<at::Tensor> x_proj;
-  at::Tensor h_prev, gates, gates_ifo, sig_ifo, gate_g, tanh_g, c, sig_f, sig_i, tanh_c, sig_o,
-      h_out;
+  at::Tensor h_prev, gates, sig, c, sig_i, sig_f, sig_g, tanh_c, sig_o, h_out;
   explicit Cell(const Named& m)
       : x_proj(maybe(m, "x_proj")), h_prev(take(m, "h_prev")), gates(take(m, "gates")),
-        gates_ifo(take(m, "gates_ifo")), sig_ifo(take(m, "sig_ifo")), gate_g(take(m, "gate_g")),
-        tanh_g(take(m, "tanh_g")), c(take(m, "c")), sig_f(take(m, "sig_f")),
-        sig_i(take(m, "sig_i")), tanh_c(take(m, "tanh_c")), sig_o(take(m, "sig_o")),
+        sig(take(m, "sig")), c(take(m, "c")), sig_i(take(m, "sig_i")), sig_f(take(m, "sig_f")),
+        sig_g(take(m, "sig_g")), tanh_c(take(m, "tanh_c")), sig_o(take(m, "sig_o")),
         h_out(take(m, "h_out")) {}
 };
 
@@ -100,7 +98,7 @@ class RolloutLoop {
       at::addmm_out(conv_, conv_wave_bias_, s.window, conv_wave_);
       conv_.relu_();
       at::addmm_out(att_hidden_, att1_bias_, conv_rows_, att1_weight_t_);
-      att_hidden_.tanh_();
+      att_hidden_.sigmoid_();  // tanh, with the weights rearranged
       at::addmm_out(att_logits_, att2_bias_, att_hidden_, att2_weight_t_);
       if (att_shift_) {
         att_logits_.sub_(at::amax(att_logits_, {-1}, true));
@@ -117,16 +115,18 @@ class RolloutLoop {
       if (s.edge_proj.has_value()) {
         s.gates_edge->add_(*s.edge_proj);
       }
-      // LSTM cell updates (Eq. 11-16), gate-major [4, m, hid]
+      // LSTM cell updates (Eq. 11-16), gate-major [4, m, hid], gates i, f, o, 2g
       for (auto& cl : s.cells) {
         if (cl.x_proj.has_value()) {
           at::baddbmm_out(cl.gates, *cl.x_proj, cl.h_prev, wh_gates_);
         }
-        at::sigmoid_out(cl.sig_ifo, cl.gates_ifo);
-        at::tanh_out(cl.tanh_g, cl.gate_g);
-        cl.c.mul_(cl.sig_f).addcmul_(cl.sig_i, cl.tanh_g);
-        at::tanh_out(cl.tanh_c, cl.c);
+        // tanh(x) = 2 sigmoid(2x) - 1 (lstm_pointwise in fused.py)
+        at::sigmoid_out(cl.sig, cl.gates);
+        cl.c.mul_(cl.sig_f).addcmul_(cl.sig_i, cl.sig_g, 2.0).sub_(cl.sig_i);
+        at::add_out(cl.tanh_c, cl.c, cl.c);
+        cl.tanh_c.sigmoid_();
         at::mul_out(cl.h_out, cl.sig_o, cl.tanh_c);
+        cl.h_out.add_(cl.h_out).sub_(cl.sig_o);
       }
       if (s.h_last_window.has_value()) {
         h_last_.copy_(*s.h_last_window);
