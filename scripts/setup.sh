@@ -54,6 +54,7 @@ if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel
   echo "$hash" > "$stamp"
   echo "setup: done" >&2
 fi
-# the planner's C++ model-step loop: compiled once (~25 s), then cached; optional (without a
-# compiler the Python loop runs, same results), so a failure here does not stop setup
+# the planner's C++ model-step loop: compiled once into this venv (.venv/peel_native/, keyed by
+# the source hash; ~25-110 s), never while planning; optional (without a compiler the Python
+# loop runs, same results), so a failure here does not stop setup
 .venv/bin/python -m peel_planner_node.native_loop || true

@@ -11,7 +11,7 @@ from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_msgs_py.errors import PeelError
 from peel_planner_node.config import load_planner_config
 from peel_planner_node.control_loop import ControlLoop, StateAssembler
-from peel_planner_node.dynamics import LearnedDynamics
+from peel_planner_node.dynamics import ReferenceDynamics
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.lockstep import TaskSequence, task_seed
 
@@ -68,7 +68,7 @@ def _loop() -> ControlLoop:
     cfg = load_planner_config().replace(**{"mppi.n_samples": 8, "mppi.horizon": 2,
                                            "task.q_ter_mm": 4.0, "task.t_max_s": 6.0})
     pred = load_checkpoint(shipped_checkpoint())
-    return ControlLoop(cfg, LearnedDynamics(pred, dt_s=cfg.cost.dt_s), seed=3)
+    return ControlLoop(cfg, ReferenceDynamics(pred, dt_s=cfg.cost.dt_s), seed=3)
 
 
 def test_control_loop_and_task_sequence_in_lockstep() -> None:

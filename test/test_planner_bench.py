@@ -31,20 +31,42 @@ def test_quick_benchmark_prints_both_implementations_with_paired_costs() -> None
     assert abs(goal["cost_diff"] - want) < 1e-3
     assert report["planner_seeds"] == [0] and report["episodes_per_case"] == 1
     assert report["planner_config"]["mppi"]["noise_correlation"] == 0.8
+    ratio = cases[("peel", 50, 5)]["median_ms"] / cases[("pytorch_mppi", 50, 5)]["median_ms"]
+    assert abs(goal["latency_ratio"] - ratio) < 1e-3
+    floor = report["flop_floor"]
+    macs = floor["macs_per_model_step"]
+    assert 0 < macs["fused"] < macs["model"]  # the fused rollout skips the shift-invariant work
+    case = floor["cases"]["50x5"]
+    assert case["macs_per_plan"] == 50 * 5 * 5 * macs["fused"]
+    assert case["floor_ms_1_threads"] > 0 and all(v > 0 for v in floor["peak_gflops"].values())
 
 
 def test_cost_study_takes_base_settings_and_ad_hoc_variants() -> None:
     out = _bench("--cost-study", "--tasks", "1", "--seeds", "1", "--first-task", "3",
                  "--variants", "peel,mppi.noise_correlation=0.0+mppi.sigma_min=0.25",
-                 "--set", "cost.barrier_w=4.0")
+                 "--set", "cost.barrier.weight=4.0")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
-    assert report["tasks"] == [3] and report["base_overrides"] == {"cost.barrier_w": 4.0}
+    assert report["tasks"] == [3] and report["base_overrides"] == {"cost.barrier.weight": 4.0}
     names = [v["variant"] for v in report["variants"]]
     assert names == ["peel", "mppi.noise_correlation=0.0+mppi.sigma_min=0.25", "pytorch_mppi"]
     assert report["variants"][1]["overrides"] == {"mppi.noise_correlation": 0.0,
                                                   "mppi.sigma_min": 0.25}
     assert report["variants"][2]["diff_vs_pytorch_mppi"] == 0.0
+    for v in report["variants"]:
+        assert 0 <= v["near_miss"] + v["safety_stop"] <= 1
+        assert v["peak_force_n"]["max"] >= v["peak_force_n"]["mean"] > 0
+
+
+def test_cost_terms_report_which_critic_drives_the_plans() -> None:
+    out = _bench("--cost-terms", "--tasks", "1", "--first-task", "2")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    terms = report["terms"]
+    assert set(terms) == {"progress", "force_x", "force_z", "terminal", "barrier", "cost_to_go",
+                          "control"}
+    assert report["plans"] > 5
+    assert abs(sum(t["largest_reduction_share"] for t in terms.values()) - 1.0) < 1e-3
 
 
 def test_bad_settings_are_named_and_exit_non_zero() -> None:

@@ -1,4 +1,4 @@
-"""Cost (Eq. 3-5), planning barrier, SafetyMonitor (4.2) and the planner's config file."""
+"""Cost critics (Eq. 3-5, barrier, cost-to-go), SafetyMonitor (4.2) and the planner's config file."""
 
 from __future__ import annotations
 
@@ -11,7 +11,14 @@ from peel_msgs_py.errors import ParameterError, PeelError
 from peel_msgs_py.params import config_dir
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node.config import PlannerConfig, load_planner_config
-from peel_planner_node.cost import Cost, episode_cost, episode_cost_terms
+from peel_planner_node.cost import (
+    BarrierCritic,
+    Cost,
+    Critic,
+    Rollouts,
+    episode_cost,
+    episode_cost_terms,
+)
 from peel_planner_node.mppi import Planner
 from peel_planner_node.safety import SafetyMonitor
 
@@ -31,9 +38,13 @@ def test_episode_cost_is_eq3_by_hand() -> None:
     fz = [2.0, 4.0, -6.0, 5.0]
     want = 0.0
     for k in range(1, 4):  # Eq. 4 per 100 ms sample after t0
-        want += (-c.w_dis * (q[k] - q[k - 1]) / 25.0 + c.w_fx * abs(fx[k]) / 20.0
-                 + c.w_fz * abs(fz[k]) / 20.0)
+        want += (-c.progress.weight * (q[k] - q[k - 1]) / 25.0
+                 + c.force_x.weight * abs(fx[k]) / c.force_x.f_lim_n
+                 + c.force_z.weight * abs(fz[k]) / c.force_z.f_lim_n)
     assert episode_cost(traj(q, fx, fz), Cost(c)) == pytest.approx(want)
+    terms = episode_cost_terms(traj(q, fx, fz), Cost(c))
+    assert set(terms) == {"progress", "force_x", "force_z", "terminal", "total", "t_cpl",
+                          "reached"}  # the paper's critics only: no barrier, no cost-to-go
 
 
 def test_terminal_cost_eq5() -> None:
@@ -41,18 +52,19 @@ def test_terminal_cost_eq5() -> None:
     n_late = 700  # 69.9 s > t_max = 60 s
     q = np.linspace(0.0, 25.0, n_late)
     zeros = np.zeros(n_late)
-    assert episode_cost_terms(traj(q, zeros, zeros), cost)["phi"] == 1.0
+    assert episode_cost_terms(traj(q, zeros, zeros), cost)["terminal"] == 1.0
     short = traj(np.linspace(0, 10, n_late), zeros, zeros, outcome="timeout")
-    assert episode_cost_terms(short, cost)["phi"] == 2.0
-    assert episode_cost_terms(traj([0.0, 25.0], [0, 0], [0, 0]), cost)["phi"] == 0.0
+    assert episode_cost_terms(short, cost)["terminal"] == 2.0
+    assert episode_cost_terms(traj([0.0, 25.0], [0, 0], [0, 0]), cost)["terminal"] == 0.0
     stopped = traj([0.0, 3.0], [0.0, 21.0], [0.0, 0.0], outcome="safety_stop")
-    assert episode_cost_terms(stopped, cost)["phi"] == 2.0
+    assert episode_cost_terms(stopped, cost)["terminal"] == 2.0
     with pytest.raises(PeelError, match="fx"):
         episode_cost(traj([0.0, 1.0], [0.0, np.nan], [0.0, 0.0]), cost)
 
 
 def test_rollout_cost_masks_after_goal_and_rewards_finishing_sooner() -> None:
-    cost = Cost(PlannerConfig().replace(**{"cost.barrier_w": 0.0, "cost.w_togo": 0.0}).cost)
+    cost = Cost(PlannerConfig().replace(**{"cost.barrier.weight": 0.0,
+                                           "cost.cost_to_go.weight": 0.0}).cost)
     s = 5
     fast = torch.tensor([[24.5, 25.5, 26.5, 27.5, 28.5]])
     slow = torch.tensor([[24.6, 24.7, 24.8, 24.9, 25.0]])
@@ -68,10 +80,12 @@ def test_rollout_cost_masks_after_goal_and_rewards_finishing_sooner() -> None:
     assert float(late - j_slow) == pytest.approx(1.0)
 
 
-def test_rollout_cost_equals_per_sample_terms_summed() -> None:
-    """The batched rollout cost (both force axes in one tensor) is the sum over samples of
-    immediate() + barrier(), masked after q_ter, + cost-to-go + phi, written out sample by
-    sample here (float64, forces on both sides of the barrier onset and the prewarning)."""
+def test_rollout_cost_is_the_critics_per_sample_costs_summed() -> None:
+    """One code path: the planner's batched rollout cost equals, sequence by sequence and
+    sample by sample, the critics run on one-sample rollouts (as a step-by-step caller like
+    pytorch_mppi uses them) summed while the task runs, + cost-to-go + phi, with Eq. 4 and the
+    barrier written out by hand beside them (float64, forces on both sides of the barrier
+    onset and the prewarning)."""
     cost = Cost(CFG.cost)
     c = CFG.cost
     rng = np.random.default_rng(2)
@@ -80,30 +94,87 @@ def test_rollout_cost_equals_per_sample_terms_summed() -> None:
     fx = torch.tensor(rng.uniform(-22.0, 22.0, (n, s)))
     fz = torch.tensor(rng.uniform(-22.0, 22.0, (n, s)))
     got = cost.rollout_cost(18.0, 3.0, torch.stack([q, fx, fz], dim=-1))
+    width = c.barrier.f_prewarn_n - c.barrier.start_n
+
+    def by_hand(dq: float, f1: float, f2: float) -> float:
+        out = (-c.progress.weight * dq / 25.0 + c.force_x.weight * abs(f1) / c.force_x.f_lim_n
+               + c.force_z.weight * abs(f2) / c.force_z.f_lim_n)
+        for f in (abs(f1), abs(f2)):
+            out += c.barrier.weight * (max(0.0, f - c.barrier.start_n) / width) ** 2
+            out += c.barrier.stop_weight * (f >= c.barrier.f_prewarn_n)
+        return out
+
     for k in range(n):
         total, q_prev, t_reach = 0.0, 18.0, None
         for t in range(s):
             qt = min(float(q[k, t]), c.q_ter_mm)
+            one = Rollouts.predicted(q_prev, 0.0, torch.tensor([[[float(q[k, t]),
+                                                                  float(fx[k, t]),
+                                                                  float(fz[k, t])]]],
+                                                               dtype=torch.float64), c)
+            step = float(cost.running_cost(one)[0])
             if q_prev < c.q_ter_mm:
-                one = lambda x: torch.tensor([x], dtype=torch.float64)  # noqa: E731
-                total += float(cost.immediate(one(qt - q_prev), one(fx[k, t]), one(fz[k, t]))
-                               + cost.barrier(one(fx[k, t]), one(fz[k, t])))
+                assert step == pytest.approx(by_hand(qt - q_prev, float(fx[k, t]),
+                                                     float(fz[k, t])), rel=1e-12, abs=1e-12)
+            else:
+                assert step == 0.0  # the task is over
+            total += step
             if t_reach is None and qt >= c.q_ter_mm:
                 t_reach = 3.0 + (t + 1) * c.dt_s
             q_prev = qt
-        total += c.w_togo * (c.q_ter_mm - q_prev) / (c.q_ter_mm - c.q0_mm)
-        total += c.phi_late if t_reach is not None and t_reach > c.t_max_s else 0.0
+        total += c.cost_to_go.weight * (c.q_ter_mm - q_prev) / (c.q_ter_mm - c.q0_mm)
+        total += c.terminal.phi_late if t_reach is not None and t_reach > c.t_max_s else 0.0
         assert float(got[k]) == pytest.approx(total, rel=1e-12, abs=1e-12)
 
 
+def test_each_critic_has_its_own_prefix_and_weight() -> None:
+    """cost.<critic>.weight scales exactly that critic's N costs (the barrier's two parts have
+    a weight each: weight and stop_weight); the objective is their sum."""
+    out = torch.stack([torch.tensor([[20.0, 21.0, 22.0]]), torch.tensor([[16.0, 18.0, 21.0]]),
+                       torch.tensor([[3.0, -4.0, 5.0]])], dim=-1).double()
+    base = Cost(CFG.cost).rollout_terms(19.0, 1.0, out)
+    assert set(base) == {"progress", "force_x", "force_z", "terminal", "barrier", "cost_to_go"}
+    for name in base:
+        double = {f"cost.{name}.{w}": 2.0 * getattr(getattr(CFG.cost, name), w)
+                  for w in ("weight", "stop_weight") if f"cost.{name}.{w}" in CFG.to_params()}
+        doubled = Cost(CFG.replace(**double).cost).rollout_terms(19.0, 1.0, out)
+        for other, value in doubled.items():
+            want = 2.0 * base[other] if other == name else base[other]
+            torch.testing.assert_close(value, want)
+    total = Cost(CFG.cost).rollout_cost(19.0, 1.0, out)
+    torch.testing.assert_close(total, sum(base.values()))
+
+
+def test_a_new_critic_joins_the_objective_but_not_the_papers_j() -> None:
+    class Slow(Critic):
+        name = "slow"
+
+        def score(self, r: Rollouts) -> torch.Tensor:
+            return 3.0 * (r.active.sum(dim=1))
+
+    cost = Cost(CFG.cost, critics=[*Cost(CFG.cost).critics, Slow()])
+    out = torch.stack([torch.tensor([[1.0, 2.0]]), torch.ones(1, 2), torch.ones(1, 2)], dim=-1)
+    terms = cost.rollout_terms(0.0, 0.0, out)
+    assert float(terms["slow"][0]) == 6.0
+    assert float(cost.rollout_cost(0.0, 0.0, out)[0]) == pytest.approx(
+        float(Cost(CFG.cost).rollout_cost(0.0, 0.0, out)[0]) + 6.0)
+    finished = traj([0.0, 10.0, 25.0], [1.0, 2.0, 3.0], [1.0, 1.0, 1.0])
+    assert episode_cost(finished, cost) == episode_cost(finished, Cost(CFG.cost))
+    with pytest.raises(PeelError, match="distinct"):
+        Cost(CFG.cost, critics=[Slow(), Slow()])
+
+
 def test_barrier_penalises_forces_near_prewarning() -> None:
-    cost = Cost(CFG.cost)
-    f = torch.tensor([0.0, 15.0, 17.5, 19.9, 20.0, 25.0])
-    b = cost.barrier(f, torch.zeros_like(f))
+    barrier = BarrierCritic(CFG.cost.barrier)
+    f = torch.tensor([[0.0, 15.0, 17.5, 19.9, 20.0, 25.0]])
+    zero = torch.zeros_like(f)
+    r = Rollouts.predicted(0.0, 0.0, torch.stack([zero, f, zero], dim=-1), CFG.cost)
+    b = barrier.sample_costs(r)[0]
     assert float(b[0]) == 0.0 and float(b[1]) == 0.0
     assert 0.0 < float(b[2]) < float(b[3]) < float(b[4])
-    assert float(b[4]) >= CFG.cost.barrier_w + CFG.cost.barrier_stop_w
-    assert float(cost.barrier(-f, torch.zeros_like(f))[3]) == pytest.approx(float(b[3]))
+    assert float(b[4]) >= CFG.cost.barrier.weight + CFG.cost.barrier.stop_weight
+    mirrored = Rollouts.predicted(0.0, 0.0, torch.stack([zero, zero, -f], dim=-1), CFG.cost)
+    torch.testing.assert_close(barrier.sample_costs(mirrored)[0], b)
 
 
 def test_safety_monitor_reasons_and_latch() -> None:
@@ -180,4 +251,5 @@ def test_config_round_trips_every_parameter() -> None:
     new = cfg.replace(**{"mppi.lambda": 0.3, "task.dt_s": 0.05, "task.control_period_s": 0.25,
                          "safety.f_prewarn_n": 25.0})
     assert new.mppi.lam == 0.3 and new.mppi.dt_s == new.cost.dt_s == 0.05
-    assert new.cost.f_prewarn_n == new.safety.f_prewarn_n == 25.0
+    assert new.cost.barrier.f_prewarn_n == new.safety.f_prewarn_n == 25.0
+    assert new.dynamics.dt_s == 0.05  # task.dt_s feeds the dynamics too

@@ -11,8 +11,15 @@ import torch
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node.config import PlannerConfig
-from peel_planner_node.cost import Cost
-from peel_planner_node.mppi import Planner, eq38_weights
+from peel_planner_node.cost import Cost, Critic, Rollouts
+from peel_planner_node.mppi import (
+    Planner,
+    ar1_matrix,
+    ar1_precision,
+    control_cost,
+    eq38_weights,
+    term_influence,
+)
 
 torch.set_num_threads(1)
 
@@ -45,14 +52,17 @@ class LinearDynamics:
         return torch.stack([q, self.a * v, torch.full_like(v, self.b)], dim=-1)
 
 
-class QuadraticCost:
-    """J = w/2 * sum_s (q_s - target_s)^2 over the model steps of a rollout."""
+class QuadraticCritic(Critic):
+    """J = w/2 * sum_s (q_s - target_s)^2 over the model steps of a rollout (positions
+    uncapped: the target is far from q_ter)."""
+
+    name = "quadratic"
 
     def __init__(self, target: torch.Tensor, w: float) -> None:
         self.target, self.w = target, w
 
-    def rollout_cost(self, q_prev: float, t_now: float, out: torch.Tensor) -> torch.Tensor:
-        return 0.5 * self.w * ((out[..., 0] - self.target) ** 2).sum(dim=1)
+    def score(self, r: Rollouts) -> torch.Tensor:
+        return 0.5 * self.w * ((r.q - self.target) ** 2).sum(dim=1)
 
 
 def config(**flat) -> PlannerConfig:
@@ -87,10 +97,11 @@ def test_eq38_weights_equal_direct_evaluation() -> None:
 
 
 def test_planner_update_uses_eq38_and_eq31() -> None:
-    """One update of the real planner: its omega is Eq. 38 of its samples, U = sum omega v."""
+    """One update of the real planner: its omega is Eq. 38 (the paper's per-step form) of its
+    samples, U = sum omega v."""
     cfg = config(**{"mppi.n_samples": 7, "mppi.horizon": 3, "mppi.dtype": "float64",
                     "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
-                    "mppi.control_cost_scale": 1.0})
+                    "mppi.control_cost_scale": 1.0, "mppi.control_term": "per_step"})
     planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
     u_before = planner.U.clone()
     u_after = planner.update(append(start_history(), 1.0))
@@ -112,7 +123,8 @@ def test_control_term_uses_the_configured_sigma(which: str) -> None:
     cfg = config(**{"mppi.n_samples": 9, "mppi.horizon": 3, "mppi.dtype": "float64",
                     "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
                     "mppi.sigma_min_count": 1, "mppi.control_cost_scale": 1.0,
-                    "mppi.sigma_min": 0.25, "mppi.control_cost_sigma": which})
+                    "mppi.sigma_min": 0.25, "mppi.control_cost_sigma": which,
+                    "mppi.control_term": "per_step"})
     planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
     planner.observe(2.3, 2.0)
     assert planner.sigma == pytest.approx(0.25)
@@ -130,28 +142,37 @@ def test_control_term_uses_the_configured_sigma(which: str) -> None:
 
 
 # ---------------------------------------------------------------- convergence (LQ case)
-@pytest.mark.parametrize("rho", [0.0, 0.8])
-@pytest.mark.parametrize("scale", [1.0, 0.0])
-def test_linear_quadratic_plan_converges_to_known_optimum(scale: float, rho: float) -> None:
-    """Linear model q = q0 + dt L E V and J = w/2 |A V - b|^2: MPPI's fixed point is the mean of
-    q*(V) ~ exp(-J/lambda) N(0, Sigma) (Eq. 33), V* = (w A'A + c lambda/Sigma I)^-1 w A'b; with
-    the control term switched off (c = 0) it is the unregularised minimiser. With AR(1) noise
-    over the horizon (rho > 0, covariance C) the fixed point is the same: E_q[eps] = 0 for
-    q ~ exp(-J(U + eps)/lambda - c U'eps/Sigma) N(0, C) needs (w A'A + c lambda/Sigma) U = w A'b
-    whatever C is."""
+@pytest.mark.parametrize(("scale", "rho", "term"), [(1.0, 0.0, "per_step"),
+                                                    (0.0, 0.0, "per_step"),
+                                                    (1.0, 0.8, "per_step"),
+                                                    (0.0, 0.8, "per_step"),
+                                                    (1.0, 0.8, "joint")])
+def test_linear_quadratic_plan_converges_to_known_optimum(scale: float, rho: float,
+                                                          term: str) -> None:
+    """Linear model q = q0 + A V and J = w/2 |A V - b|^2: MPPI's fixed point U has E_q[eps] = 0
+    for q(eps) ~ exp(-J(U + eps)/lambda - c U' P eps / Sigma) N(0, Sigma R), with R the noise's
+    correlation over the horizon and P the precision in Eq. 38's control term, i.e.
+    (w A'A + c lambda/Sigma R^-1 P R ... ) -- for P = R^-1 (joint term, or white noise with the
+    per-step term) U* = (w A'A + c lambda/Sigma R^-1)^-1 w A'b, the mean of the prior N(0,
+    Sigma R) tilted by exp(-J/lambda); for AR(1) noise with the per-step term (P = I) it is
+    (w A'A + c lambda/Sigma I)^-1 w A'b whatever R is. c = 0: the unregularised minimiser."""
     h, k, dt, sigma, lam, w = 3, 5, 0.1, 1.0, 0.1, 0.2
     cfg = config(**{"mppi.n_samples": 4000, "mppi.horizon": h, "mppi.lambda": lam,
                     "mppi.sigma0": sigma, "mppi.u_min": -50.0, "mppi.u_max": 50.0,
                     "mppi.u_init": 0.0, "mppi.dtype": "float64", "mppi.seed": 11,
-                    "mppi.control_cost_scale": scale, "mppi.noise_correlation": rho})
+                    "mppi.control_cost_scale": scale, "mppi.noise_correlation": rho,
+                    "mppi.control_term": term})
     s = h * k
     lower = np.tril(np.ones((s, s)))
     expand = np.kron(np.eye(h), np.ones((k, 1)))
     a = dt * lower @ expand                       # q = q0 + A V
     r = np.array([2.0, 1.0, 3.0])                 # velocities that would hit the target
     b = a @ r                                     # target minus q0 (q0 = 0)
-    v_star = np.linalg.solve(w * a.T @ a + scale * lam / sigma * np.eye(h), w * a.T @ b)
-    planner = Planner(LinearDynamics(dt=dt), QuadraticCost(torch.tensor(b), w), cfg)
+    prior = (ar1_precision(h, rho, torch.float64).numpy() if term == "joint"
+             else np.eye(h))
+    v_star = np.linalg.solve(w * a.T @ a + scale * lam / sigma * prior, w * a.T @ b)
+    cost = Cost(cfg.cost, critics=[QuadraticCritic(torch.tensor(b), w)])
+    planner = Planner(LinearDynamics(dt=dt), cost, cfg)
     hist = start_history()
     # correlated noise explores the alternating direction of V little: slower convergence
     iters = 60 if rho == 0.0 else 300
@@ -160,8 +181,69 @@ def test_linear_quadratic_plan_converges_to_known_optimum(scale: float, rho: flo
     np.testing.assert_allclose(got, v_star, atol=0.05)
     if scale == 1.0:  # the control term's shrinkage is visible, so this test can tell them apart
         assert np.max(np.abs(v_star - r)) > 0.3
+        other = np.linalg.solve(w * a.T @ a + lam / sigma * (
+            np.eye(h) if term == "joint" else ar1_precision(h, 0.8, torch.float64).numpy()),
+            w * a.T @ b)
+        if rho > 0.0:  # the two control terms have different fixed points
+            assert np.max(np.abs(v_star - other)) > 0.2
     else:
         np.testing.assert_allclose(v_star, r, atol=1e-9)
+
+
+# ---------------------------------------------------------------- Eq. 38 with AR(1) noise
+@pytest.mark.parametrize("rho", [0.0, 0.5, 0.8, 0.95])
+def test_ar1_precision_is_the_inverse_noise_correlation(rho: float) -> None:
+    """R_ts = rho^|t-s| is the covariance of the sampled noise (A'A); its inverse is the
+    tridiagonal matrix of ar1_precision."""
+    for h in (1, 2, 5, 10):
+        idx = np.arange(h)
+        corr = rho ** np.abs(idx[:, None] - idx[None, :])
+        prec = ar1_precision(h, rho, torch.float64).numpy()
+        np.testing.assert_allclose(prec @ corr, np.eye(h), atol=1e-10)
+        assert np.all(np.triu(prec, 2) == 0.0)
+        if rho > 0.0:
+            a = ar1_matrix(h, rho, torch.float64).numpy()
+            np.testing.assert_allclose(a.T @ a, corr, atol=1e-12)
+
+
+def test_joint_control_term_is_the_log_likelihood_ratio_of_the_horizon() -> None:
+    """lambda log(p(V) / q_U(V)) of the whole horizon for p = N(0, Sigma R) and q_U = N(U,
+    Sigma R) at V = U + eps, written with an explicit inverse, equals -control_cost with the
+    AR(1) precision (c = 1); the per-step term is the same with R = I."""
+    rng = np.random.default_rng(5)
+    h, n, sigma, lam, rho = 5, 6, 0.7, 0.3, 0.8
+    u, eps = rng.uniform(0.5, 3.0, h), rng.normal(0.0, 1.0, (n, h))
+    idx = np.arange(h)
+    for corr, prec in ((rho ** np.abs(idx[:, None] - idx[None, :]),
+                        ar1_precision(h, rho, torch.float64)), (np.eye(h), None)):
+        inv = np.linalg.inv(sigma * corr)
+        v = u + eps
+        log_ratio = np.array([-0.5 * vk @ inv @ vk + 0.5 * ek @ inv @ ek
+                              for vk, ek in zip(v, eps, strict=True)])
+        got = control_cost(torch.tensor(eps), torch.tensor(u), sigma, lam, 1.0, prec)
+        np.testing.assert_allclose(got.numpy(), -lam * log_ratio, rtol=1e-10)
+
+
+def test_planner_uses_the_configured_control_term() -> None:
+    """``control_term: joint`` weights with the AR(1) precision of the horizon; per_step with
+    the identity (Eq. 36-37); both checked against an explicit evaluation, and told apart."""
+    omegas = {}
+    for term in ("joint", "per_step"):
+        cfg = config(**{"mppi.n_samples": 9, "mppi.horizon": 4, "mppi.dtype": "float64",
+                        "mppi.lambda": 0.3, "mppi.sigma0": 0.8, "mppi.u_init": 2.0,
+                        "mppi.control_cost_scale": 1.0, "mppi.noise_correlation": 0.8,
+                        "mppi.control_term": term})
+        planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+        u = planner.U.clone()
+        planner.update(append(start_history(), 1.0))
+        last = planner.last
+        prec = ar1_precision(4, 0.8, torch.float64) if term == "joint" else torch.eye(
+            4, dtype=torch.float64)
+        s = last["cost"] + 0.5 * 0.3 / 0.8 * (u @ prec @ u + 2.0 * last["eps"] @ prec @ u)
+        want = torch.exp(-(s - s.min()) / 0.3)
+        torch.testing.assert_close(last["omega"], want / want.sum(), rtol=1e-9, atol=1e-14)
+        omegas[term] = last["omega"]
+    assert not torch.allclose(omegas["joint"], omegas["per_step"], rtol=1e-3)
 
 
 # ---------------------------------------------------------------- Sigma (lines 15-17)
@@ -247,7 +329,7 @@ def test_same_seed_same_plan_and_reset_restarts() -> None:
 
 def test_commands_stay_within_speed_limits() -> None:
     cfg = config(**{"mppi.u_min": 0.5, "mppi.u_max": 2.0, "mppi.sigma0": 4.0, "mppi.u_init": 1.0,
-                    "mppi.sigma_min_count": 100, "cost.w_dis": 15.0})
+                    "mppi.sigma_min_count": 100, "cost.progress.weight": 15.0})
     planner = Planner(LinearDynamics(a=0.0, b=0.0), Cost(cfg.cost), cfg)
     hist = start_history()
     for _ in range(6):
@@ -281,20 +363,33 @@ def test_bad_dynamics_output_is_refused() -> None:
         planner.set_dynamics(object())
 
 
-def test_planner_hands_rollout_workers_to_the_dynamics() -> None:
-    """``mppi.rollout_workers`` / ``min_samples_per_worker`` reach a dynamics that takes them
-    (LearnedDynamics), also after set_dynamics; a dynamics without set_workers is fine."""
-    class Recording(LinearDynamics):
-        def set_workers(self, workers: int, min_chunk: int) -> None:
-            self.workers = (workers, min_chunk)
+def test_planner_does_not_configure_its_dynamics() -> None:
+    """The Planner only calls rollout(): the dynamics' own settings (threads, chunks) are its
+    config section's, and a dynamics with other methods is left alone."""
+    class Configurable(LinearDynamics):
+        def set_workers(self, *args) -> None:
+            raise AssertionError("the planner must not configure the dynamics")
 
-    cfg = config(**{"mppi.rollout_workers": 3, "mppi.min_samples_per_worker": 17})
-    dyn, other = Recording(), Recording()
-    planner = Planner(dyn, Cost(cfg.cost), cfg)
-    assert dyn.workers == (3, 17)
-    planner.set_dynamics(other)
-    assert other.workers == (3, 17)
-    planner.set_dynamics(LinearDynamics())
+    cfg = config()
+    planner = Planner(Configurable(), Cost(cfg.cost), cfg)
+    planner.set_dynamics(Configurable())
+    assert planner.plan(start_history()) > 0.0
+
+
+def test_terms_of_the_plan_are_kept_for_diagnostics() -> None:
+    """Every critic's N costs (summing to J) and Eq. 38's control term are in planner.last;
+    term_influence is each term's mean minus its omega-weighted mean."""
+    cfg = config(**{"mppi.dtype": "float64"})
+    planner = Planner(LinearDynamics(), Cost(cfg.cost), cfg)
+    planner.update(append(start_history(), 1.0))
+    last = planner.last
+    assert set(last["terms"]) == {"progress", "force_x", "force_z", "terminal", "barrier",
+                                  "cost_to_go"}
+    torch.testing.assert_close(sum(last["terms"].values()), last["cost"])
+    influence = term_influence({**last["terms"], "control": last["control"]}, last["omega"])
+    s = last["cost"] + last["control"]
+    assert sum(influence.values()) == pytest.approx(float(s.mean() - last["omega"] @ s))
+    assert sum(influence.values()) > 0.0  # the weighting lowers S
 
 
 def test_correlated_noise_keeps_sigma_per_step_and_has_rho_lag_one() -> None:

@@ -28,8 +28,9 @@ from model_learner_node.synthetic import synthetic_trajectory
 from model_learner_node.windows import padded_times
 from peel_msgs_py.errors import CheckpointError, PeelError
 from peel_planner_node.config import load_planner_config
-from peel_planner_node.cost import Cost
-from peel_planner_node.dynamics import LearnedDynamics
+from peel_planner_node.cost import Cost, total
+from peel_planner_node.dynamics import ReferenceDynamics, history_window, learned_dynamics
+from peel_planner_node.fused_dynamics import FusedDynamics
 from peel_planner_node.model_check import validate_model
 from peel_planner_node.mppi import Planner
 
@@ -124,23 +125,51 @@ def test_time_terms_need_times(base: ForcePredictor) -> None:
     assert torch.allclose(got, want, atol=1e-5)
 
 
-def test_speed_response_and_planner_rollout(base: ForcePredictor) -> None:
+@torch.no_grad()
+def _rollout_by_hand(comp: CompensatedPredictor, hist, v: torch.Tensor) -> torch.Tensor:
+    """Eq. 1-2 with the terms, step by step, written out independently of the planner: speeds
+    from the speed response, q from the speeds, forces from ``predict`` at t_now + (k+1) dt."""
+    n, s = v.shape
+    window = torch.as_tensor(history_window(hist, comp.h), dtype=torch.float32).repeat(n, 1, 1)
+    speed = torch.full((n,), float(hist.v[-1]))
+    t, rows = float(hist.t[-1]), []
+    for k in range(s):
+        speed = comp.speed(v[:, k], speed)
+        t += 0.1
+        f = comp.predict(window, speed, torch.full((n,), t))
+        row = torch.stack([window[:, -1, 0] + 0.1 * speed, speed, f[:, 0], f[:, 1]], dim=1)
+        window = torch.cat([window[:, 1:], row[:, None]], dim=1)
+        rows.append(row)
+    return torch.stack(rows, dim=1)[..., [0, 2, 3]]
+
+
+def test_speed_response_and_the_planners_rollouts_carry_the_terms(base: ForcePredictor) -> None:
     comp = CompensatedPredictor(base, [_term("actuator_lag", "v", 0.6),
-                                       _term("speed_scale", "v", -0.1)])
+                                       _term("speed_scale", "v", -0.1),
+                                       _term("drift_in_time", "fz", 0.5),
+                                       _term("near_start_hold", "fx", 3.0, param=4.0)])
     u, prev = torch.tensor([2.0, 4.0]), torch.tensor([1.0, 1.0])
     assert torch.allclose(comp.speed(u, prev), u + 0.6 * (prev - u) - 0.1 * u)
+    # the capability check: not the fused path (it reproduces the plain network only)
+    cfg = load_planner_config()
+    assert cfg.dynamics.implementation == "fused"
+    dyn = learned_dynamics(comp, cfg.dynamics)
+    assert isinstance(dyn, ReferenceDynamics) and isinstance(learned_dynamics(base), FusedDynamics)
     hist = synthetic_trajectory(0).slice(0, 30)
-    dyn = LearnedDynamics(comp)
-    assert dyn.model_rollout is not None and dyn.fused is None
-    v = torch.full((3, 12), 3.0)
+    v = torch.rand(5, 12, generator=torch.Generator().manual_seed(3)) * 5.0
     out = dyn.rollout(hist, v)
-    speeds, prev = [], torch.full((3,), float(hist.v[-1]))
-    for _ in range(12):
-        prev = comp.speed(v[:, 0], prev)
-        speeds.append(prev)
-    q = float(hist.q[-1]) + 0.1 * torch.cumsum(torch.stack(speeds, 1), dim=1)
-    assert torch.allclose(out[..., 0], q, atol=1e-4)
-    assert torch.isfinite(out).all()
+    assert torch.allclose(out, _rollout_by_hand(comp, hist, v), atol=1e-4)
+    assert not torch.allclose(out, ReferenceDynamics(base).rollout(hist, v), atol=1e-2)
+    # the planner's cost is that of rollouts with the terms (Algorithm 2 lines 9-12)
+    planner = Planner(dyn, Cost(cfg.cost), cfg)
+    planner.reset()
+    planner.plan(hist)
+    sampled = planner.last["v"]
+    k = cfg.mppi.steps_per_horizon_step
+    v_model = sampled.repeat_interleave(k, dim=1)
+    want = total(planner.cost.rollout_terms(float(hist.q[-1]), float(hist.t[-1]),
+                                            _rollout_by_hand(comp, hist, v_model)))
+    assert torch.allclose(planner.last["cost"], want.to(planner.last["cost"].dtype), rtol=1e-4)
     with pytest.raises(PeelError, match="stable"):
         CompensatedPredictor(base, [_term("actuator_lag", "v", 1.2)])
 
@@ -194,6 +223,8 @@ def test_maml_adapts_f_theta_with_the_terms_held(base: ForcePredictor) -> None:
     trajs = [synthetic_trajectory(i) for i in range(4)]
     before = {k: v.clone() for k, v in comp.state_dict().items()}
     terms = comp.terms
+    # planned with first (inference mode, as in peel experiment's one process), then adapted
+    learned_dynamics(comp).rollout(synthetic_trajectory(5).slice(0, 20), torch.ones(2, 5))
     rep = MetaLearner(comp, MamlConfig(meta_steps=2, m=2, support_slices=4, query_slices=4,
                                        eval_slices=4)).update(trajs[0], trajs[1:])
     assert rep["updated"]
@@ -216,7 +247,7 @@ def test_planner_accepts_and_plans_with_a_corrected_checkpoint(base: ForcePredic
     pred = validate_model(path, None, 16, 10)
     assert isinstance(pred, CompensatedPredictor)
     cfg = load_planner_config()
-    planner = Planner(LearnedDynamics(pred), Cost(cfg.cost), cfg)
+    planner = Planner(learned_dynamics(pred, cfg.dynamics), Cost(cfg.cost), cfg)
     planner.reset()
     u = planner.plan(synthetic_trajectory(1).slice(0, 25))
     assert math.isfinite(u) and cfg.mppi.u_min <= u <= cfg.mppi.u_max

@@ -11,7 +11,10 @@ named terms g = sum_k c_k phi_k(q, v, t, F) (:mod:`~model_learner_node.effect_te
   F = (I + C)^-1 (m - A) and the output is (I + C) F_next + A_next;
 * **speed response**: velocity terms correct Eq. 2's mean v_{k+1} = u_k to
   v_{k+1} = u_k + sum c phi(u_k, v_k) (actuator lag, scale, offset). They act only where the
-  model is fed *commands*: in the planner's rollouts (:meth:`rollout_from`).
+  model is fed *commands*: in the planner's rollouts, where the planner's reference dynamics
+  (``peel_planner_node.dynamics.ReferenceDynamics``) applies :meth:`speed` and passes the
+  sample times to :meth:`predict` (the fused rollout reproduces only the plain network, so the
+  planner's capability check gives such a model the reference dynamics).
 
 The coefficients are plain numbers, not parameters: MAML (Algorithm 1) and baseline 2 adapt
 f_theta's parameters through ``functional_call`` / ``parameters()`` with the terms held. Time
@@ -33,11 +36,9 @@ import torch
 from torch import Tensor, nn
 
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.trajectory import Trajectory
 
 from .effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Rows, Term
 from .predictor import ForcePredictor, Normalization
-from .windows import last_history
 
 FORM = ("F = f_theta(x with the terms removed, v) + sum_k c_k phi_k(q, v, t, F); "
         "v_{k+1} = u_k + sum_k c_k phi_k(u_k, v_k)")
@@ -115,7 +116,10 @@ class CompensatedPredictor(nn.Module):
         key = (id(terms), like.dtype, like.device)
         hit = self._coef_cache.get(key)
         if hit is None:
-            hit = [torch.tensor(t.coef, dtype=like.dtype, device=like.device) for t in terms]
+            # normal tensors even when first asked for under inference mode (the planner's
+            # rollouts): the same model may be adapted with autograd (MAML) afterwards
+            with torch.inference_mode(False):
+                hit = [torch.tensor(t.coef, dtype=like.dtype, device=like.device) for t in terms]
             self._coef_cache[key] = hit
         return hit
 
@@ -185,42 +189,6 @@ class CompensatedPredictor(nn.Module):
         for t, coef in zip(self.velocity_terms, self._coefs(self.velocity_terms, u), strict=True):
             out = out + t.candidate.basis(rows) @ coef
         return out
-
-    # -- the planner's step-by-step rollout ---------------------------------------------------
-    def rollout_from(self, history: Trajectory, v: Tensor, dt_s: float) -> Tensor:
-        """(q, fx, fz) ``[N, S, 3]`` for commanded speeds ``v [N, S]`` from the end of ``history``.
-
-        The planner's dynamics (Algorithm 2 line 9) step by step, with the terms: the speed
-        response turns commands into speeds, time terms get t = t_now + (s+1) dt. ``dt_s`` must
-        be the model's sample period."""
-        if abs(float(dt_s) - self.dt_s) > 1e-9:
-            raise PeelError(f"rollout dt {dt_s:g} s differs from the model's {self.dt_s:g} s")
-        window = last_history(history, self.h)
-        if not np.all(np.isfinite(window)):
-            raise PeelError("history holds non-finite q, v, fx or fz in its last samples")
-        t_now = float(history.t[-1]) if len(history) else 0.0
-        p = next(self.base.parameters())
-        base = torch.as_tensor(window, dtype=p.dtype, device=p.device)
-        u = v.to(dtype=p.dtype, device=p.device)
-        n, s = u.shape
-        if self.velocity_terms:
-            speeds = torch.empty_like(u)
-            prev = base[-1, 1].expand(n)
-            for k in range(s):
-                prev = self.speed(u[:, k], prev)
-                speeds[:, k] = prev
-        else:
-            speeds = u
-        h = self.h
-        buf = torch.empty((n, h + s, 4), dtype=p.dtype, device=p.device)
-        buf[:, :h] = base
-        buf[:, h:, 0] = base[-1, 0] + self.dt_s * torch.cumsum(speeds, dim=1)
-        buf[:, h:, 1] = speeds
-        for k in range(s):
-            t_next = (torch.full((n,), t_now + (k + 1) * self.dt_s, dtype=p.dtype,
-                                 device=p.device) if self.needs_time else None)
-            buf[:, h + k, 2:4] = self.predict(buf[:, k:k + h], speeds[:, k], t_next)
-        return buf[:, h:][:, :, [0, 2, 3]]
 
     # -- persistence --------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:

@@ -16,7 +16,7 @@ import torch
 
 from peel_planner_node.config import PlannerConfig
 from peel_planner_node.cost import Cost
-from peel_planner_node.dynamics import Dynamics, LearnedDynamics, OracleDynamics
+from peel_planner_node.dynamics import Dynamics, OracleDynamics, learned_dynamics
 from peel_planner_node.mppi import Planner
 
 
@@ -33,5 +33,5 @@ def oracle_planner(env: Any, config: PlannerConfig, cost: Cost | None = None) ->
 
 def learned_planner(predictor: Any, config: PlannerConfig, cost: Cost | None = None) -> Planner:
     """The same planner with a learned forward model (OL-MPPI and the baselines)."""
-    return Planner(LearnedDynamics(predictor, dt_s=config.cost.dt_s), cost or Cost(config.cost),
+    return Planner(learned_dynamics(predictor, config.dynamics), cost or Cost(config.cost),
                    config)

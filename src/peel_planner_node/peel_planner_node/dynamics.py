@@ -1,22 +1,28 @@
-"""What the planner rolls out: the Dynamics protocol and its implementations.
+"""What the planner rolls out: the Dynamics interface, its implementations, and the choice.
 
 A :class:`Dynamics` maps the measured history (a :class:`~peel_msgs_py.trajectory.Trajectory`
 ending at the current sample) and N velocity sequences ``v`` [N, S] -- one velocity per 100 ms
 model step -- to the predicted samples [N, S, 3] with columns (q_mm, fx_N, fz_N). This is line 9
-of Algorithm 2, ``x <- x + F_theta(x, v_t) dt``, batched over the N samples.
+of Algorithm 2, ``x <- x + F_theta(x, v_t) dt``, batched over the N samples. It is the
+planner's one extension point for the motion model (as nav2's motion-model plugin):
 
-- :class:`LearnedDynamics` wraps the forward model
-  (``model_learner_node.predictor.ForcePredictor``, Eq. 1-2): q advances by v dt, the forces
-  come from the model fed with the last h rows [q, v, fx, fz].
-- :class:`OracleDynamics` wraps any object with the simulator's
-  ``rollout(v: ndarray[N, S]) -> ndarray[N, S, 3]`` (``peel_sim_node.env.PeelEnv``): the true,
-  noise-free dynamics, for tests and for the oracle baseline. This package may not import the
-  simulator (docs/CONTRACT.md), so the env is duck-typed.
+- :class:`ReferenceDynamics`: the forward model stepped one model step at a time with
+  ``predictor.predict`` (Eq. 1-2). Readable; the definition every faster implementation is
+  tested against; runs any model with ``.h`` and ``.predict(hist, v_next)``.
+- :class:`~.fused_dynamics.FusedDynamics`: the same function for the ``ours`` / ``cnn-lstm``
+  networks, fused (``fused.py``), in fixed sample chunks on worker threads, with an optional
+  C++ model-step loop; its settings are ``dynamics.fused.*``.
+- :class:`OracleDynamics`: the simulator's exact, noise-free dynamics (the oracle baseline).
+
+:func:`learned_dynamics` chooses between the first two by one capability check
+(:func:`~.fused_weights.fused_support`): a model the fused rollout does not reproduce exactly
+(the ``mlp`` baseline, a subclass or wrapper of the predictor, such as a model with a
+compensation term) gets the reference dynamics.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import logging
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -24,6 +30,10 @@ import torch
 
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
+
+from .config import DynamicsConfig
+
+_LOG = logging.getLogger(__name__)
 
 
 @runtime_checkable
@@ -53,48 +63,27 @@ def history_window(history: Trajectory, h: int) -> np.ndarray:
     return rows
 
 
-class LearnedDynamics:
-    """The learned forward model F_theta (Eq. 1-2) as planner dynamics.
+class ReferenceDynamics:
+    """The forward model F_theta (Eq. 1-2) stepped sample by sample: the definition.
 
-    Each model step s: F_{s+1} = predictor.predict(window_s, v_s), q_{s+1} = q_s + v_s dt,
-    v_{s+1} = v_s (the velocity command is assumed tracked inside the rollout, Eq. 2's noise is
-    what MPPI samples), then the window slides by one row. The windows are views into one
-    preallocated [N, h + S, 4] buffer, so no tensor is concatenated in the loop.
+    Model step k: F_{k+1} = predictor.predict(window_k, v_k), q_{k+1} = q_k + v_k dt,
+    v_{k+1} = v_k (the command is assumed tracked inside the rollout; Eq. 2's noise is what
+    MPPI samples); the window then drops its oldest row and appends [q, v, F]_{k+1}.
 
-    ``fast=True`` (default) runs the ``ours`` / ``cnn-lstm`` network through
-    :class:`~.fused.FusedConvAttentionLSTM`, the same function with fewer ops and FLOPs (one
-    matmul for the three kernels, shift-invariant window positions computed once, the LSTM on
-    preallocated buffers, normalisation folded into the force update); its rearranged weights
-    are cached and rebuilt whenever a parameter or buffer of the predictor changes (in place or
-    not), so updates by the learner are seen. Other architectures use ``predictor.predict``.
+    A model with a compensation term (``CompensatedPredictor``, docs/residual.md) extends Eq.
+    1-2 in two ways, each read here once from the model, so its terms are in every rollout:
 
-    **Rollout workers** (``workers``, ``min_chunk``; the planner sets them from
-    ``mppi.rollout_workers`` / ``mppi.min_samples_per_worker``): the N samples are independent,
-    so a fused rollout of N >= 2 x min_chunk samples is split into up to ``workers`` contiguous
-    chunks, each rolled out on its own thread with its own workspace (torch releases the GIL
-    inside every op). The result is bit-identical to one chunk (``test_planner_dynamics``), so
-    it does not depend on the number of workers. Each chunk runs its ops single-threaded, which
-    at N = 1000 was faster than torch's intra-op threads over the whole batch (86 vs 95 ms per
-    50-step rollout on 2 cores, docs/planner.md); run the process with
-    ``torch.set_num_threads(1)`` when workers > 1, or the two pools oversubscribe the cores.
-
-    ``native=True`` (default) runs the fused model-step loop in C++ when it can be built
-    (:mod:`~.native_loop`; bit-identical, ~18 % faster at N = 50).
-
-    **Models that roll themselves out.** The one capability check: a predictor with a
-    ``rollout_from(history, v, dt_s)`` method (a model with a compensation term,
-    :class:`model_learner_node.compensated.CompensatedPredictor`, whose terms need the sample
-    times and whose speed response turns commands into speeds) is rolled out by that method, step
-    by step; the fused path, which reproduces only the plain network, is not used for it.
+    * ``needs_time``: its ``predict`` takes ``t_next``, the time of sample k+1 in the task; the
+      rollout passes t_now + (k+1) dt, t_now the time of the history's last sample;
+    * ``velocity_terms`` with ``speed(u_k, v_k)``: Eq. 2's mean v_{k+1} = u_k corrected by the
+      model's speed response (actuator lag, scale, offset); the speeds the model is fed, and q,
+      follow the response to the sampled commands instead of the commands themselves.
     """
 
-    def __init__(self, predictor: Any, *, dt_s: float = 0.1, fast: bool = True,
-                 workers: int = 1, min_chunk: int = 256, native: bool = True) -> None:
-        if not hasattr(predictor, "predict") or not hasattr(predictor, "h"):
+    def __init__(self, predictor: Any, *, dt_s: float = 0.1) -> None:
+        if not callable(getattr(predictor, "predict", None)) or not hasattr(predictor, "h"):
             raise PeelError("model must be a ForcePredictor with .h and .predict(hist, v_next)")
-        self.predictor = predictor
-        self.h = int(predictor.h)
-        self.dt_s = float(dt_s)
+        self.predictor, self.h, self.dt_s = predictor, int(predictor.h), float(dt_s)
         try:
             p = next(predictor.parameters())
             self.dtype, self.device = p.dtype, p.device
@@ -102,78 +91,65 @@ class LearnedDynamics:
             self.dtype, self.device = torch.float32, torch.device("cpu")
         if hasattr(predictor, "eval"):
             predictor.eval()
-        own = getattr(predictor, "rollout_from", None)
-        self.model_rollout = own if callable(own) else None
-        self.fused = None
-        if fast and self.model_rollout is None:
-            from .fused import FusedConvAttentionLSTM
+        model_dt = getattr(predictor, "dt_s", None)
+        if model_dt is not None and abs(float(model_dt) - self.dt_s) > 1e-9:
+            raise PeelError(f"rollout dt {self.dt_s:g} s differs from the model's "
+                            f"{float(model_dt):g} s")
+        self.needs_time = bool(getattr(predictor, "needs_time", False))
+        speed = getattr(predictor, "speed", None)
+        self.speed = speed if callable(speed) and getattr(predictor, "velocity_terms", None) \
+            else None
 
-            if FusedConvAttentionLSTM.supports(predictor):
-                self.fused = FusedConvAttentionLSTM(predictor, native=native)
-        self.native = native
-        self._chunks: list[Any] = []
-        self._pool: ThreadPoolExecutor | None = None
-        self._pool_size = 0
-        self.set_workers(workers, min_chunk)
-
-    def set_workers(self, workers: int, min_chunk: int = 256) -> None:
-        """Roll out up to ``workers`` sample chunks of at least ``min_chunk`` in parallel."""
-        if int(workers) < 1 or int(min_chunk) < 1:
-            raise PeelError(f"rollout workers = {workers} and min_chunk = {min_chunk} must be >= 1")
-        self.workers, self.min_chunk = int(workers), int(min_chunk)
-
-    def _chunk_count(self, n: int) -> int:
-        if self.fused is None:
-            return 1
-        return max(1, min(self.workers, n // self.min_chunk))
-
-    def _rollout_chunks(self, window: np.ndarray, v: torch.Tensor, k: int) -> torch.Tensor:
-        from .fused import FusedConvAttentionLSTM
-
-        while len(self._chunks) < k - 1:  # chunk 0 uses self.fused; one workspace per chunk
-            self._chunks.append(FusedConvAttentionLSTM(self.predictor, native=self.native))
-        if self._pool is None or self._pool_size < k - 1:
-            if self._pool is not None:
-                self._pool.shutdown(wait=True)
-            self._pool = ThreadPoolExecutor(max_workers=k - 1, thread_name_prefix="peel-rollout")
-            self._pool_size = k - 1
-        parts = torch.tensor_split(v, k, dim=0)
-
-        def run(fused: Any, part: torch.Tensor) -> torch.Tensor:
-            with torch.inference_mode():  # thread-local: entered in the worker thread too
-                return fused.rollout(window, part, self.dt_s)
-
-        futures = [self._pool.submit(run, f, p)
-                   for f, p in zip(self._chunks[:k - 1], parts[1:], strict=True)]
-        first = run(self.fused, parts[0])
-        return torch.cat([first, *(f.result() for f in futures)], dim=0)
+    def speeds(self, u: torch.Tensor, v_now: torch.Tensor) -> torch.Tensor:
+        """v_{k+1} [N, S] for the commands ``u`` [N, S] from the current speed ``v_now``: ``u``
+        itself (Eq. 2's mean), or the model's speed response applied step by step."""
+        if self.speed is None:
+            return u
+        out = torch.empty_like(u)
+        prev = v_now.expand(u.shape[0])
+        for k in range(u.shape[1]):
+            prev = self.speed(u[:, k], prev)
+            out[:, k] = prev
+        return out
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         """Predicted (q, fx, fz) [N, S, 3] for ``v`` [N, S] from the end of ``history``."""
-        if self.model_rollout is not None:
-            with torch.inference_mode():
-                return self.model_rollout(history, v, self.dt_s)
-        if self.fused is not None:
-            window = history_window(history, self.h)
-            k = self._chunk_count(int(v.shape[0]))
-            if k > 1:
-                return self._rollout_chunks(window, v, k)
-            with torch.inference_mode():
-                return self.fused.rollout(window, v, self.dt_s)
-        h = self.h
         n, s = v.shape
-        window = history_window(history, h)
         with torch.inference_mode():
-            base = torch.as_tensor(window, dtype=self.dtype, device=self.device)
-            v = v.to(dtype=self.dtype, device=self.device)
-            buf = torch.empty((n, h + s, 4), dtype=self.dtype, device=self.device)
-            buf[:, :h] = base
-            # q_s = q_now + dt * cumsum(v): computed once for all steps
-            buf[:, h:, 0] = base[-1, 0] + self.dt_s * torch.cumsum(v, dim=1)
-            buf[:, h:, 1] = v
+            window = torch.as_tensor(history_window(history, self.h), dtype=self.dtype,
+                                     device=self.device).expand(n, self.h, 4)
+            v = self.speeds(v.to(dtype=self.dtype, device=self.device), window[0, -1, 1])
+            t_now = float(history.t[-1])
+            rows = []
             for k in range(s):
-                buf[:, h + k, 2:4] = self.predictor.predict(buf[:, k:k + h], v[:, k])
-            return buf[:, h:][:, :, [0, 2, 3]]
+                extra = {"t_next": torch.full((n,), t_now + (k + 1) * self.dt_s,
+                                              dtype=self.dtype, device=self.device)} \
+                    if self.needs_time else {}
+                f = self.predictor.predict(window, v[:, k], **extra)  # F_{k+1} (Eq. 1)
+                q = window[:, -1, 0] + self.dt_s * v[:, k]  # q_{k+1} = q_k + v_k dt
+                row = torch.stack([q, v[:, k], f[:, 0], f[:, 1]], dim=1)
+                window = torch.cat([window[:, 1:], row.unsqueeze(1)], dim=1)
+                rows.append(row)
+            return torch.stack(rows, dim=1)[..., [0, 2, 3]]
+
+    def describe(self) -> str:
+        """Which implementation runs, for logs and status."""
+        return f"reference dynamics ({type(self.predictor).__name__}.predict per model step)"
+
+
+def learned_dynamics(predictor: Any, config: DynamicsConfig | None = None) -> Any:
+    """The forward model as planner dynamics, per ``dynamics.*``: the fused implementation
+    when configured and the model supports it, else the reference (the reason is logged)."""
+    config = config if config is not None else DynamicsConfig()
+    if config.implementation == "fused":
+        from .fused_dynamics import FusedDynamics
+        from .fused_weights import fused_support
+
+        reason = fused_support(predictor)
+        if reason is None:
+            return FusedDynamics(predictor, dt_s=config.dt_s, config=config.fused)
+        _LOG.info("peel: reference dynamics for this model (%s)", reason)
+    return ReferenceDynamics(predictor, dt_s=config.dt_s)
 
 
 class OracleDynamics:
@@ -181,7 +157,8 @@ class OracleDynamics:
 
     ``env`` is anything with ``rollout(v: ndarray[N, S]) -> ndarray[N, S, 3]`` that simulates
     from its own current state (``PeelEnv``); the history argument is ignored because the env
-    already is at the end of it.
+    already is at the end of it. This package may not import the simulator
+    (docs/CONTRACT.md), so the env is duck-typed.
     """
 
     def __init__(self, env: Any, *, dtype: torch.dtype = torch.float32) -> None:
@@ -196,3 +173,6 @@ class OracleDynamics:
         if out.shape != (*v.shape, 3):
             raise PeelError(f"env.rollout returned shape {out.shape}, expected {(*v.shape, 3)}")
         return torch.as_tensor(out, dtype=self.dtype)
+
+    def describe(self) -> str:
+        return f"oracle dynamics ({type(self.env).__name__}.rollout)"

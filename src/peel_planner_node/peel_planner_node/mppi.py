@@ -16,13 +16,20 @@ One :meth:`Planner.plan` call is one pass of Algorithm 2's inner loop:
    ``v^k = clip(u + eps^k, u_min, u_max)`` and eps^k is replaced by the clipped ``v^k - u`` (so
    the control term sees the perturbation actually applied); each v^k_t is held for
    ``steps_per_horizon_step`` model steps of dt (default 5 x 0.1 s = one 0.5 s control period)
-   and the whole batch is rolled out at once through the Dynamics; J^k = sum of L_t + barrier
-   + phi (:class:`~.cost.Cost`);
-4. (line 13, Eq. 38) ``S^k = J^k + c lambda/2 sum_t (u_t Sigma^-1 u_t + 2 eps^k_t Sigma^-1 u_t)``
-   with c = ``control_cost_scale`` (1 in the paper) and Sigma here = sigma0
-   (``control_cost_sigma: sigma0``, a fixed control cost) or the re-estimate (``estimate``), and
-   ``omega^k = exp(-(S^k - min_j S^j) / lambda) / eta`` -- subtracting the minimum before the
-   exponential (the "min-cost shift") leaves omega unchanged and keeps exp() finite;
+   and the whole batch is rolled out at once through the Dynamics (:mod:`~.dynamics`); J^k =
+   the sum of the cost critics: Eq. 4's terms + phi + barrier + cost-to-go (:mod:`~.cost`);
+4. (line 13, Eq. 38) ``S^k = J^k + c lambda/2 (u' Sigma_H^-1 u + 2 eps^k' Sigma_H^-1 u)``
+   with c = ``control_cost_scale`` (1 in the paper), Sigma_H the covariance of the noise over
+   the horizon and ``omega^k = exp(-(S^k - min_j S^j) / lambda) / eta`` -- subtracting the
+   minimum before the exponential (the "min-cost shift") leaves omega unchanged and keeps exp()
+   finite. The control term is the log-likelihood ratio of the sampled sequence under the
+   zero-mean and the u-mean noise (:func:`control_cost`): with independent steps Sigma_H =
+   Sigma I and it is Eq. 36-37's per-step ``sum_t (u_t^2 + 2 eps_t u_t) / Sigma``
+   (``control_term: per_step``); with AR(1) noise Sigma_H = Sigma R, R_ts = rho^|t-s|, whose
+   inverse is tridiagonal (:func:`ar1_precision`; ``control_term: joint``). Sigma here is
+   sigma0 (``control_cost_sigma: sigma0``, a fixed control cost) or the re-estimate
+   (``estimate``). ``J^k`` is the sum of the cost critics (:mod:`~.cost`); each critic's N
+   costs are kept in ``planner.last["terms"]`` (:func:`term_influence`: which term drives U);
 5. (line 14, Eq. 31) ``U = sum_k omega^k v^k`` -- already inside the speed limits because each
    v^k is; repeated ``iterations`` times (1 in the paper);
 6. (line 15) u* = U_0 is returned; (lines 18-19) U is shifted by one horizon step and the last
@@ -46,30 +53,39 @@ from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import PlannerConfig
-from .cost import Cost
+from .cost import Cost, total
 from .dynamics import Dynamics
 from .safety import SafetyMonitor, Stop
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
+def control_cost(eps: torch.Tensor, u: torch.Tensor, sigma: float, lam: float,
+                 control_cost_scale: float = 1.0,
+                 precision: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 38's control term of each sample, [N], for perturbations eps [N, H] and U [H]:
+    ``c lambda/2 (u' P u + 2 eps' P u) / Sigma`` with P the inverse correlation of the noise
+    over the horizon (None: independent steps, P = I, the paper's per-step term)."""
+    pu = u if precision is None else precision @ u
+    return (0.5 * lam * control_cost_scale / sigma) * ((u * pu).sum() + 2.0 * (eps @ pu))
+
+
 def eq38_weights(cost: torch.Tensor, eps: torch.Tensor, u: torch.Tensor, sigma: float,
-                 lam: float, control_cost_scale: float = 1.0) -> torch.Tensor:
+                 lam: float, control_cost_scale: float = 1.0,
+                 precision: torch.Tensor | None = None) -> torch.Tensor:
     """omega of Eq. 38 for costs J [N], perturbations eps [N, H] and the mean sequence u [H].
 
-    ``S = J + c lambda/2 sum_t (u_t^2 / Sigma + 2 eps_t u_t / Sigma)``;
-    ``omega = exp(-(S - min S) / lambda) / sum(...)`` (the shift cancels in the normalisation).
+    ``S = J + control_cost(...)``; ``omega = exp(-(S - min S) / lambda) / sum(...)`` (the shift
+    cancels in the normalisation).
     """
-    sig_inv = 1.0 / sigma
-    ctrl = 0.5 * lam * control_cost_scale * (
-        (u * u).sum() * sig_inv + 2.0 * (eps * u.unsqueeze(0)).sum(dim=1) * sig_inv)
-    s = cost + ctrl
+    s = cost + control_cost(eps, u, sigma, lam, control_cost_scale, precision)
     return torch.softmax(-(s - s.min()) / lam, dim=0)
 
 
 def ar1_matrix(h: int, rho: float, dtype: torch.dtype) -> torch.Tensor | None:
     """[H, H] matrix A with (z A)_t = rho (z A)_{t-1} + sqrt(1 - rho^2) z_t, (z A)_0 = z_0:
-    unit-variance AR(1) noise from white z (None for rho = 0)."""
+    unit-variance AR(1) noise from white z (None for rho = 0). Its covariance is A'A = R,
+    R_ts = rho^|t-s|."""
     if rho == 0.0:
         return None
     a = torch.zeros((h, h), dtype=torch.float64)
@@ -78,6 +94,26 @@ def ar1_matrix(h: int, rho: float, dtype: torch.dtype) -> torch.Tensor | None:
         for s in range(t + 1):
             a[s, t] = rho ** (t - s) * (1.0 if s == 0 else c)
     return a.to(dtype)
+
+
+def ar1_precision(h: int, rho: float, dtype: torch.dtype) -> torch.Tensor:
+    """R^-1 of the AR(1) correlation R_ts = rho^|t-s|: tridiagonal, 1/(1 - rho^2) times
+    1, 1 + rho^2, ..., 1 + rho^2, 1 on the diagonal and -rho beside it (identity for rho = 0
+    or H = 1)."""
+    if h == 1:
+        return torch.ones((1, 1), dtype=dtype)
+    diag = torch.full((h,), 1.0 + rho * rho, dtype=torch.float64)
+    diag[0] = diag[-1] = 1.0
+    p = torch.diag(diag) - rho * (torch.diag(torch.ones(h - 1, dtype=torch.float64), 1)
+                                  + torch.diag(torch.ones(h - 1, dtype=torch.float64), -1))
+    return (p / (1.0 - rho * rho)).to(dtype)
+
+
+def term_influence(terms: dict[str, torch.Tensor], omega: torch.Tensor) -> dict[str, float]:
+    """How much the weighting lowered each term: mean over the N samples minus the
+    omega-weighted mean (the cost of the new U's samples). The largest drives the plan; a
+    negative value is a term the plan pays for the others."""
+    return {name: float(v.mean() - omega.to(v.dtype) @ v) for name, v in terms.items()}
 
 
 class Planner:
@@ -99,7 +135,10 @@ class Planner:
         self.set_dynamics(dynamics)
         self._gen = torch.Generator(device="cpu")
         self._noise = torch.empty((self.n, self.h), dtype=self.dtype)
-        self._ar = ar1_matrix(self.h, self.config.mppi.noise_correlation, self.dtype)
+        rho = self.config.mppi.noise_correlation
+        self._ar = ar1_matrix(self.h, rho, self.dtype)
+        self._precision = (ar1_precision(self.h, rho, self.dtype)
+                           if m.control_term == "joint" and rho > 0.0 else None)
         self.last: dict[str, Any] = {}
         self.reset()
 
@@ -117,12 +156,8 @@ class Planner:
 
     def set_dynamics(self, dynamics: Dynamics) -> None:
         """Swap the forward model; U, Sigma, D_Sigma and the noise stream are kept."""
-        if not callable(getattr(dynamics, "rollout", None)):
+        if not isinstance(dynamics, Dynamics):
             raise PeelError("dynamics must provide rollout(history, v) -> Tensor[N, S, 3]")
-        set_workers = getattr(dynamics, "set_workers", None)
-        if callable(set_workers):
-            m = self.config.mppi
-            set_workers(m.rollout_workers, m.min_samples_per_worker)
         self.dynamics = dynamics
 
     @property
@@ -170,14 +205,18 @@ class Planner:
             if out.shape != (self.n, self.h * self.k, 3):
                 raise PeelError(f"dynamics returned shape {tuple(out.shape)}, "
                                 f"expected {(self.n, self.h * self.k, 3)}")
-            j = self.cost.rollout_cost(q_now, t_now, out).to(self.dtype)
+            terms = self.cost.rollout_terms(q_now, t_now, out)
+            j = total(terms).to(self.dtype)
             if not bool(torch.isfinite(j).all()):
                 raise PeelError("rollout cost is not finite: the model predicted NaN/inf forces")
             sigma_ctrl = self.sigma if m.control_cost_sigma == "estimate" else m.sigma0
-            omega = eq38_weights(j, eps, u, sigma_ctrl, self.lam, m.control_cost_scale)
-            self.U = omega @ v
-            self.last = {"omega": omega, "cost": j, "v": v, "eps": eps,
-                         "ess": float(1.0 / (omega * omega).sum())}
+            ctrl = control_cost(eps, u, sigma_ctrl, self.lam, m.control_cost_scale,
+                                self._precision)
+            s = j + ctrl
+            omega = torch.softmax(-(s - s.min()) / self.lam, dim=0)  # Eq. 38
+            self.U = omega @ v  # Eq. 31
+            self.last = {"omega": omega, "cost": j, "terms": terms, "control": ctrl, "v": v,
+                         "eps": eps, "ess": float(1.0 / (omega * omega).sum())}
         return self.U.numpy().copy()
 
     def _shift(self) -> None:

@@ -38,7 +38,7 @@ from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
 
 from .config import PlannerConfig
 from .control_loop import Answer, ControlLoop, StateAssembler
-from .dynamics import LearnedDynamics
+from .dynamics import learned_dynamics
 from .model_check import resolve_model_path, validate_model
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
 
@@ -59,7 +59,7 @@ class PlannerNode(NamedRefusals, Node):
         except PeelError as exc:
             raise PeelError(f"parameter '{MODEL_PATH}': {exc}") from None
         self.h = int(pred.h)
-        self.loop = ControlLoop(self.cfg, LearnedDynamics(pred, dt_s=self.dt_s),
+        self.loop = ControlLoop(self.cfg, learned_dynamics(pred, self.cfg.dynamics),
                                 self.values["node.seed"])
         self.parts = StateAssembler()
         qos = topics.qos_profile
@@ -78,7 +78,8 @@ class PlannerNode(NamedRefusals, Node):
         self.announcer = self.create_timer(0.05, self.announce,
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"planner ready: model v{self.version} ({path.name}), "
-                               f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}")
+                               f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}, "
+                               f"{self.loop.planner.dynamics.describe()}")
 
     def announce(self) -> None:
         """Publish the model version once the command's readers are matched: the simulator
@@ -172,7 +173,7 @@ class PlannerNode(NamedRefusals, Node):
 
     def swap(self, pred: Any, identity: tuple[str, str | None, int | None], path: Path) -> None:
         """Plan with ``pred`` from the next cycle on; publish its version and identity."""
-        self.loop.set_dynamics(LearnedDynamics(pred, dt_s=self.dt_s))
+        self.loop.set_dynamics(learned_dynamics(pred, self.cfg.dynamics))
         rec = self.ledger.accept(path, identity)
         self.publish_version()
         origin = f"{rec.producer}'s update after task {rec.task}" if rec.producer else "outside"
