@@ -3,16 +3,18 @@
 #
 #   scripts/residual_demo.sh [OUT] [--docs]        (default OUT: runs/residual_demo/<time>)
 #
-# 1. the node graph on the plant with two effects nobody declared (--effect), shipped model, bag;
+# 1. the node graph on the plant with effects nobody declared (--effect), shipped model, bag:
+#    a slipping axis (OUT/axis/), and a slipping axis with a vacuum leak (OUT/axis_leak/);
 # 2. peel residual on that bag: the residual, the effects it names, the corrected model;
 # 3. the graph again, same seed and effects, planner and learner starting from the corrected model;
 # 4. planner cost J per task and safety margin, before and after (peel_bringup.residual_compare);
-# 5. the plant's own documented differences: the graph on the plant without injected effects and
-#    peel residual with the shipped simulator-trained model; and the same analysis on plant data
-#    under exploratory commands;
+# 5. the plant's own documented differences, with the shipped simulator-trained model: the graph
+#    on the plant (default level 3, and level 1) without injected effects and peel residual on
+#    its bag; the same analysis on plant data under exploratory commands (levels 3 and 1);
 # 6. the scenario table: known undeclared effects, three seeds (scripts/residual_scenarios.py).
 # With --docs the reports and figures are copied to docs/residual/ (what the docs page shows).
-# Environment: PEEL_DEMO_TASKS (default 30), PEEL_DEMO_SEED (default 0), ROS_DOMAIN_ID.
+# Environment: PEEL_DEMO_TASKS (default 30), PEEL_DEMO_SEED (default 300: graph seeds S, S+1,
+# S+2; scenario seeds S+101..S+103; exploratory plant seeds S+201..S+203), ROS_DOMAIN_ID.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -20,7 +22,8 @@ out="" ; docs=0
 for arg in "$@"; do
   case "$arg" in
     --docs) docs=1 ;;
-    -h|--help) sed -n 2,16p "$0"; exit 0 ;;
+    -h|--help) sed -n 2,18p "$0"; exit 0 ;;
+    -*) echo "residual_demo: error: unknown option $arg" >&2; exit 2 ;;
     *) out="$arg" ;;
   esac
 done
@@ -30,65 +33,93 @@ if [ -e "$out" ]; then
   exit 2
 fi
 tasks="${PEEL_DEMO_TASKS:-30}"
-seed="${PEEL_DEMO_SEED:-0}"
+seed="${PEEL_DEMO_SEED:-300}"
 [ -x .venv/bin/peel ] || bash scripts/setup.sh
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 export TORCH_EXTENSIONS_DIR="${TORCH_EXTENSIONS_DIR:-$root/.venv/torch_extensions}"
 peel=.venv/bin/peel
 py=.venv/bin/python
-effects=(--effect peel_sim_node.example_effects:slipping_axis
-         --effect peel_sim_node.example_effects:vacuum_leak)
 mkdir -p "$out"
 absout="$(cd "$out" && pwd)"
-set -x
-# 1. the plant with undeclared effects, the shipped model
-$peel graph --plant plant --tasks "$tasks" --seed "$seed" "${effects[@]}" \
-  --record "$out/before/bag" --out "$out/before/run"
-# 2. trace the residual
-$peel residual "$out/before/bag" --out "$out/residual" --no-progress
-set +x
-if [ -f "$out/residual/corrected.safetensors" ]; then
-  cat > "$out/after.yaml" <<EOF
+cat > "$out/level1.yaml" <<YAML
+peel_sim_node:
+  ros__parameters:
+    plant:
+      level: 1
+YAML
+
+# Steps 1-4 for one set of undeclared effects, in $out/<name>/.
+story() {
+  local name="$1"; shift
+  local effects=()
+  for e in "$@"; do effects+=(--effect "peel_sim_node.example_effects:$e"); done
+  local d="$out/$name"
+  mkdir -p "$d"
+  set -x
+  # 1. the plant with undeclared effects, the shipped model
+  $peel graph --plant plant --tasks "$tasks" --seed "$seed" "${effects[@]}" \
+    --record "$d/before/bag" --out "$d/before/run"
+  # 2. trace the residual
+  $peel residual "$d/before/bag" --out "$d/residual" --no-progress
+  { set +x; } 2>/dev/null
+  if [ ! -f "$d/residual/corrected.safetensors" ]; then
+    echo "residual_demo: $name: no effect named, so no corrected model to run again" >&2
+    return 0
+  fi
+  cat > "$d/after.yaml" <<YAML
 peel_planner_node:
   ros__parameters:
     model:
-      path: $absout/residual/corrected.safetensors
+      path: $absout/$name/residual/corrected.safetensors
 model_learner_node:
   ros__parameters:
     node:
-      init_model: $absout/residual/corrected.safetensors
-EOF
+      init_model: $absout/$name/residual/corrected.safetensors
+YAML
   set -x
   # 3. the same tasks with the corrected model
   $peel graph --plant plant --tasks "$tasks" --seed "$seed" "${effects[@]}" \
-    --params "$out/after.yaml" --record "$out/after/bag" --out "$out/after/run"
+    --params "$d/after.yaml" --record "$d/after/bag" --out "$d/after/run"
   # 4. planner cost and safety margin, before and after
-  $py -m peel_bringup.residual_compare --before "$out/before/run" "$out/before/bag" \
-    --after "$out/after/run" "$out/after/bag" --out "$out/comparison" \
+  $py -m peel_bringup.residual_compare --before "$d/before/run" "$d/before/bag" \
+    --after "$d/after/run" "$d/after/bag" --out "$d/comparison" \
     --label-before "shipped model" --label-after "corrected model"
-  set +x
-else
-  echo "residual_demo: no effect named, so no corrected model to run again" >&2
-fi
+  { set +x; } 2>/dev/null
+}
+
+story axis slipping_axis
+story axis_leak slipping_axis vacuum_leak
 set -x
-# 5. the plant's own differences, with the shipped simulator-trained model
+# 5. the plant's own differences, with the shipped simulator-trained model (levels 3 and 1)
 $peel graph --plant plant --tasks "$tasks" --seed "$((seed + 1))" \
   --record "$out/plant/bag" --out "$out/plant/run"
 $peel residual "$out/plant/bag" --out "$out/plant_residual" --no-progress
-$py scripts/residual_scenarios.py --scenarios plant --seeds "$((seed + 201)),$((seed + 202)),$((seed + 203))" \
-  --out "$out/plant_exploratory.jsonl"
-# 6. the scenario table
+$peel graph --plant plant --tasks "$tasks" --seed "$((seed + 2))" --params "$out/level1.yaml" \
+  --record "$out/plant_l1/bag" --out "$out/plant_l1/run"
+$peel residual "$out/plant_l1/bag" --out "$out/plant_l1_residual" --no-progress
+$py scripts/residual_scenarios.py --scenarios plant \
+  --seeds "$((seed + 201)),$((seed + 202)),$((seed + 203))" --out "$out/plant_exploratory.jsonl"
+$py scripts/residual_scenarios.py --scenarios plant --level 1 \
+  --seeds "$((seed + 201)),$((seed + 202)),$((seed + 203))" --out "$out/plant_l1_exploratory.jsonl"
+# 6. the scenario table (default plant level)
 $py scripts/residual_scenarios.py --seeds "$((seed + 101)),$((seed + 102)),$((seed + 103))" \
   --out "$out/scenarios.jsonl"
 set +x
 if [ "$docs" = 1 ]; then
   dst=docs/residual
-  rm -rf "$dst/demo" "$dst/plant"
-  mkdir -p "$dst/demo" "$dst/plant"
-  cp "$out"/residual/report.{md,json} "$out"/residual/*.png "$dst/demo/"
-  [ -d "$out/comparison" ] && cp "$out"/comparison/comparison.{md,json,png} "$dst/demo/"
+  rm -rf "$dst/demo" "$dst/demo_axis" "$dst/demo_axis_leak" "$dst/plant" "$dst/plant_l1"
+  for name in axis axis_leak; do
+    mkdir -p "$dst/demo_$name"
+    cp "$out/$name"/residual/report.{md,json} "$out/$name"/residual/*.png "$dst/demo_$name/"
+    if [ -d "$out/$name/comparison" ]; then
+      cp "$out/$name"/comparison/comparison.{md,json,png} "$dst/demo_$name/"
+    fi
+  done
+  mkdir -p "$dst/plant" "$dst/plant_l1"
   cp "$out"/plant_residual/report.{md,json} "$out"/plant_residual/*.png "$dst/plant/"
+  cp "$out"/plant_l1_residual/report.{md,json} "$out"/plant_l1_residual/*.png "$dst/plant_l1/"
   cp "$out/plant_exploratory.jsonl" "$dst/plant/"
+  cp "$out/plant_l1_exploratory.jsonl" "$dst/plant_l1/"
   cp "$out/scenarios.jsonl" "$dst/"
   echo "residual_demo: copied the reports and figures to $dst/"
 fi

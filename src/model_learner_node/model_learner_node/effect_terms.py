@@ -238,8 +238,8 @@ class Term:
     @property
     def expression(self) -> str:
         """The term as a formula, e.g. ``+0.41*sin(2*pi*q/6) -0.12*cos(2*pi*q/6)``."""
-        return " ".join(f"{c:+.4g}*{e}" for c, e in zip(self.coef, self.candidate.expressions,
-                                                         strict=True))
+        return " ".join(f"{c:+.4g}*{f'({e})' if ' ' in e else e}"
+                        for c, e in zip(self.coef, self.candidate.expressions, strict=True))
 
     def to_json(self) -> dict[str, Any]:
         return {"family": self.candidate.family, "param": self.candidate.param,

@@ -1,12 +1,12 @@
 """Planner cost and safety margin per task, before and after a correction (docs/residual.md).
 
     python -m peel_bringup.residual_compare --before RUN BAG --after RUN BAG --out DIR
-                                            [--label-before TEXT] [--label-after TEXT]
+                                            [--force] [--label-before TEXT] [--label-after TEXT]
 
 ``RUN`` is a ``peel graph --out`` directory (its ``summary.json`` holds J of Eq. 3 per task),
 ``BAG`` the ``--record`` bag of that run (its ``/peel/trajectory`` messages give the peak forces).
-The safety margin of a task is the 20 N prewarning (section 4.2) minus its largest measured
-|F_RX| or |F_RZ|. Writes ``DIR/comparison.json``, ``DIR/comparison.md`` and
+The safety margin of a task is the 20 N prewarning (section 4.2, ``task.f_prewarn_n``) minus its
+largest measured |F_RX| or |F_RZ|. Writes ``DIR/comparison.json``, ``DIR/comparison.md`` and
 ``DIR/comparison.png``; prints the JSON. Used by ``scripts/residual_demo.sh``.
 """
 
@@ -21,9 +21,17 @@ from typing import Any
 import numpy as np
 
 from peel_msgs_py.atomic import atomic_write_text
+from peel_msgs_py.cliargs import ArgumentParser, run_main
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.outputs import OutputDir
 
-F_PREWARN_N = 20.0  # section 4.2; the same value as safety.f_prewarn_n in the configs
+
+def f_prewarn_n() -> float:
+    """The safety prewarning on abs F_RX or abs F_RZ (section 4.2; ``task.f_prewarn_n`` of
+    config/peel_sim_node.yaml, 20 N)."""
+    from peel_sim_node.config import load_sim_config
+
+    return float(load_sim_config().task.f_prewarn_n)
 
 
 def run_tasks(run: Path, bag: Path) -> list[dict[str, Any]]:
@@ -38,12 +46,12 @@ def run_tasks(run: Path, bag: Path) -> list[dict[str, Any]]:
     results = summary.get("results", [])
     if len(trajs) != len(results):
         raise PeelError(f"{bag} holds {len(trajs)} tasks, {run}/summary.json {len(results)}")
-    out = []
+    out, limit = [], f_prewarn_n()
     for res, tr in zip(results, trajs, strict=True):
         peak = float(max(np.abs(tr.fx).max(), np.abs(tr.fz).max())) if len(tr) else 0.0
         out.append({"task": res["task"], "J": res["J"], "outcome": res["outcome"],
                     "t_cpl_s": res["t_cpl_s"], "model_version": res.get("model_version"),
-                    "peak_force_n": peak, "safety_margin_n": F_PREWARN_N - peak})
+                    "peak_force_n": peak, "safety_margin_n": limit - peak})
     return out
 
 
@@ -71,7 +79,7 @@ def _figure(path: Path, before: list[dict], after: list[dict], labels: tuple[str
         axes[0].plot(k, [t["J"] for t in tasks], "o-", ms=3, label=label)
         axes[1].plot(k, [t["safety_margin_n"] for t in tasks], "o-", ms=3, label=label)
     axes[0].set_ylabel("planner cost J (Eq. 3)")
-    axes[1].set_ylabel("safety margin 20 N - peak |F| (N)")
+    axes[1].set_ylabel("safety margin: prewarning - peak |F| (N)")
     for ax in axes:
         ax.set_xlabel("task")
     axes[0].legend(fontsize=8)
@@ -80,16 +88,15 @@ def _figure(path: Path, before: list[dict], after: list[dict], labels: tuple[str
     plt.close(fig)
 
 
-def compare(before: tuple[Path, Path], after: tuple[Path, Path], out: Path,
-            labels: tuple[str, str] = ("before", "after")) -> dict[str, Any]:
+def compare(b: list[dict[str, Any]], a: list[dict[str, Any]], args: argparse.Namespace,
+            out: Path) -> dict[str, Any]:
     """Write the comparison files into ``out``; returns the JSON dict."""
-    b, a = run_tasks(*before), run_tasks(*after)
-    rep = {"before": {"run": str(before[0]), "bag": str(before[1]), "label": labels[0],
+    labels = (args.label_before, args.label_after)
+    rep = {"before": {"run": str(args.before[0]), "bag": str(args.before[1]), "label": labels[0],
                       "summary": _stats(b), "tasks": b},
-           "after": {"run": str(after[0]), "bag": str(after[1]), "label": labels[1],
+           "after": {"run": str(args.after[0]), "bag": str(args.after[1]), "label": labels[1],
                      "summary": _stats(a), "tasks": a},
-           "f_prewarn_n": F_PREWARN_N}
-    out.mkdir(parents=True, exist_ok=True)
+           "f_prewarn_n": f_prewarn_n()}
     atomic_write_text(out / "comparison.json", json.dumps(rep, indent=1) + "\n")
     lines = [f"# Planner cost and safety margin: {labels[0]} vs {labels[1]}", "",
              "| task | J before | J after | T_cpl before (s) | T_cpl after (s) | margin before "
@@ -113,23 +120,22 @@ def compare(before: tuple[Path, Path], after: tuple[Path, Path], out: Path,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m peel_bringup.residual_compare",
-                                description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m peel_bringup.residual_compare",
+                       description=__doc__.split("\n\n")[0])
     p.add_argument("--before", nargs=2, type=Path, required=True, metavar=("RUN", "BAG"))
     p.add_argument("--after", nargs=2, type=Path, required=True, metavar=("RUN", "BAG"))
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--force", action="store_true", help="replace an earlier comparison in --out")
     p.add_argument("--label-before", default="before")
     p.add_argument("--label-after", default="after")
-    args = p.parse_args(argv)
-    try:
-        rep = compare(tuple(args.before), tuple(args.after), args.out,
-                      (args.label_before, args.label_after))
-    except PeelError as exc:
-        print(f"residual_compare: error: {exc}", file=sys.stderr)
-        return 2
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    out = OutputDir(args.out, command="residual_compare", force=args.force)
+    before, after = run_tasks(*args.before), run_tasks(*args.after)
+    with out as out_dir:
+        rep = compare(before, after, args, out_dir)
     print(json.dumps({k: rep[k]["summary"] for k in ("before", "after")}, indent=1))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main("residual_compare", main))

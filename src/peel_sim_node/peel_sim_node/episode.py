@@ -35,15 +35,15 @@ def run_episode(env: PeelEnv, policy: Policy, *, seed: int | None = None,
 
 
 def exploratory_tasks(cfg: SimConfig, *, source: str = "plant", effects: Sequence[Effect] = (),
-                      n: int = 24, seed: int = 0, u_min: float = 0.5,
-                      u_max: float = 6.0) -> list[Trajectory]:
+                      n: int = 24, seed: int = 0, u_min: float = 0.5, u_max: float = 6.0,
+                      level: int | None = None) -> list[Trajectory]:
     """``n`` tasks under exploratory command profiles (:mod:`.profiles`, speeds in
     [u_min, u_max] mm/s), task i with profile seed [seed, i] and noise seed 1000 seed + i; the
     varied speeds are what the residual analysis needs to tell effects apart
-    (docs/residual.md)."""
+    (docs/residual.md). ``level``: the plant severity level (None: ``plant.level``)."""
     from .profiles import ExploratoryProfile
 
-    env = PeelEnv(cfg, source=source, seed=seed, effects=list(effects))
+    env = PeelEnv(cfg, source=source, seed=seed, effects=list(effects), level=level)
     out = []
     try:
         for i in range(n):
