@@ -12,8 +12,8 @@ import sys
 from peel_msgs_py.errors import PeelError
 
 TARGETS: dict[str, tuple[str, str]] = {
-    "sim": ("peel_sim_node.bench:main", "simulator throughput against raw stepSimulation (issue 3)"),
-    "model": ("model_learner_node.bench:main", "training samples/s and inference latency (issue 4)"),
+    "sim": ("peel_sim_node.bench:main", "simulator throughput against raw stepSimulation (docs/simulator.md)"),
+    "model": ("model_learner_node.bench:main", "training samples/s and inference latency (docs/model.md)"),
     "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
     "ros": ("peel_msgs_py.ros.bench:main", "rclpy pub/sub and service round trips between two processes"),
     "nachi": ("peel_nachi_bridge.bench:main", "STOP delay of the Nachi bridge on a force spike"),

@@ -138,7 +138,8 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
     readers = {"node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
                "node.min_traj_subscribers": 3 if recording else 2}  # learner, launcher (+ rec.)
     if plant == "nachi":  # the substrates and the plant are the controller's
-        bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers, **(link or {})}}
+        bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers,
+                          "node.learner_node": LEARNER, **(link or {})}}
     else:
         bridge = {"peel_sim_node": {"use_sim_time": True, "node.source": plant,
                                     "node.tasks": tasks, "node.seed": seed, **readers,

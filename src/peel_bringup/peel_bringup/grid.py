@@ -35,7 +35,7 @@ import numpy as np
 
 from .experiment import ORACLE, ExperimentConfig, run_experiment
 
-#: tasks at which the fraction of headroom closed is reported (the issue's 5, 10, 20)
+#: tasks at which the fraction of headroom closed is reported (5, 10, 20: docs/experiments.md)
 CHECK_TASKS: tuple[int, ...] = (5, 10, 20)
 #: targets (docs/experiments.md): fraction closed by OL-MPPI at the strongest level
 TARGET_CLOSED = {5: 0.70, 10: 0.85}
@@ -201,7 +201,7 @@ def run_grid(cfg: ExperimentConfig, *, levels: Sequence[int], sequences: Sequenc
 
 
 def grid_targets(summary: Mapping[str, Any]) -> dict[str, Any]:
-    """The issue's targets at the strongest level in the grid, each measured."""
+    """The targets (docs/experiments.md) at the strongest level in the grid, each measured."""
     top = max(summary["levels"])
     res: dict[str, Any] = {"level": top}
     st = summary["cells"].get(cell_name(top, "stationary"))

@@ -1,4 +1,4 @@
-"""The oracle of issue 6: the same MPPI planner with the plant's true dynamics as its model.
+"""The oracle (docs/experiments.md): the same MPPI planner with the plant's true dynamics as its model.
 
 The OL-MPPI planner (Algorithm 2) rolls its N velocity sequences out through a learned forward
 model F_theta. The oracle rolls them out through :meth:`peel_sim_node.env.PeelEnv.rollout`

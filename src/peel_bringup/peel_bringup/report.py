@@ -182,7 +182,7 @@ def table1_markdown(methods: Mapping[str, Sequence[Mapping[str, Any]]]) -> str:
 def evaluate_targets(methods: Mapping[str, Sequence[Mapping[str, Any]]],
                      runs: Mapping[str, Mapping[str, Sequence[Mapping[str, Any]]]],
                      ol: str = "ol-mppi") -> dict[str, Any]:
-    """The issue's targets, each measured (True/False/None when a method is missing)."""
+    """The experiment's targets (docs/experiments.md), each measured (True/False/None when a method is missing)."""
     res: dict[str, Any] = {"n_seeds": len(runs)}
     if ol not in methods:
         return res
@@ -360,7 +360,7 @@ def report_markdown(results: Mapping[str, Any]) -> str:
         "",
         "![Fig. 12](fig12_task_traces.png)",
         "",
-        "## Targets (issue 6), measured",
+        "## Targets (docs/experiments.md), measured",
         "",
         "| target | result |",
         "|---|---|",

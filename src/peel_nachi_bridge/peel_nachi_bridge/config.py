@@ -54,6 +54,7 @@ class NodeParams:
     wait_planner_s: float
     min_subscribers: int
     min_traj_subscribers: int
+    learner_node: str
     exit_when_done: bool
 
 

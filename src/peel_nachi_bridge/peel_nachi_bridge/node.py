@@ -20,13 +20,15 @@ from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray, Int64
+from std_msgs.msg import Float64MultiArray, Int64, String
 
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
+from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 
 from . import protocol as p
@@ -59,6 +61,11 @@ class NachiBridgeNode(NamedRefusals, Node):
                                  qos(topics.CMD_VEL, subscriber=True))
         self.create_subscription(Int64, topics.MODEL_VERSION, self.on_model_version,
                                  qos(topics.MODEL_VERSION, subscriber=True))
+        self.create_subscription(String, topics.MODEL_INFO, self.on_model_info,
+                                 to_profile(topics.topic(topics.MODEL_INFO).sub_qos))
+        self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
+                                 to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
+        self.updates = UpdateWait(self.cfg.node.learner_node)
         self.model_version: int | None = None
         self.versions_seen: set[int] = set()
         self.version_at_start: dict[int, int | None] = {}
@@ -83,12 +90,25 @@ class NachiBridgeNode(NamedRefusals, Node):
         self.model_version = int(msg.data)
         self.versions_seen.add(int(msg.data))
 
+    def on_model_info(self, msg: String) -> None:
+        try:
+            self.updates.add_record(ModelRecord.from_json(msg.data))
+        except PeelError as exc:
+            self.get_logger().error(f"ignoring a malformed {topics.MODEL_INFO} message: {exc}")
+
+    def on_model_update(self, msg: String) -> None:
+        try:
+            self.updates.add_report(UpdateReport.from_json(msg.data))
+        except PeelError as exc:
+            self.get_logger().error(f"ignoring a malformed {topics.MODEL_UPDATE} message: {exc}")
+
     def on_tick(self) -> None:
         while not self.ended.empty():
             self.publish_task(self.ended.get())
         state_readers = min(pub.get_subscription_count()
                             for pub in (self.pub_wrench, self.pub_twist, self.pub_pose))
-        seen = Readiness(self.model_version, state_readers, self.pub_traj.get_subscription_count())
+        seen = Readiness(self.model_version, state_readers, self.pub_traj.get_subscription_count(),
+                         update_known=lambda task: self.updates.outcome(task) is not None)
         index = self.sequencer.poll(time.monotonic(), seen)
         if index is not None:
             self.version_at_start[index] = self.model_version

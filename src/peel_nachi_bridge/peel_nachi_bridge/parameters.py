@@ -63,6 +63,9 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.min_traj_subscribers", int, 1,
               "wait for this many subscribers of /peel/trajectory before task 1 (learner, "
               "launcher, recorder)", min=0),
+    ParamSpec("node.learner_node", str, "/model_learner_node",
+              "the learner whose update of the last task is waited for, by its identity "
+              "(/peel/model_info, /peel/model_update; docs/graph.md)"),
     ParamSpec("node.exit_when_done", bool, False,
               "exit after the last task (and its model update); for ros2 launch and peel graph"),
 )

@@ -4,8 +4,10 @@
   and for ``node.min_subscribers`` readers of each state topic (``/peel/wrench``, ``/peel/twist``,
   ``/peel/pose``) and ``node.min_traj_subscribers`` of ``/peel/trajectory``, so that no sample
   or trajectory goes out before its readers match.
-* Between tasks: wait (at most ``node.wait_model_s``) for the learner's update of the task before
-  (model version >= version at start + tasks published), as Algorithm 2 line 20 does.
+* Between tasks: wait (at most ``node.wait_model_s``) for the outcome of the learner's update of
+  the task before, known by its identity (:class:`peel_msgs_py.modelinfo.UpdateWait`: the
+  planner's record of that update, or the learner's report that it failed, was refused or
+  skipped), as Algorithm 2 line 20 does; a model swapped in by anyone else does not end the wait.
 * A task that could not start (no ``OK START``, link lost before it) is requested again after
   ``RETRY_S``; it is not counted.
 * After ``node.tasks`` tasks (0 = never): :attr:`TaskSequencer.finished`; with
@@ -15,7 +17,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .config import NodeParams
 from .task import TaskResult
@@ -32,6 +34,8 @@ class Readiness:
     #: the fewest readers any of the three state topics has
     state_readers: int
     trajectory_readers: int
+    #: whether the outcome of the learner's update after task k (1-based) is known
+    update_known: Callable[[int], bool] = field(default=lambda task: False)
 
 
 class TaskSequencer:
@@ -42,7 +46,8 @@ class TaskSequencer:
         self.log = log
         self.next_index = 0
         self.published = 0
-        self.start_version: int | None = None
+        #: 1-based number of the published task whose update is awaited (None: nothing to await)
+        self.awaiting: int | None = None
         self.phase = "ready"  # ready -> between -> running -> ... -> finished / exit
         self.since: float | None = None
         self.retry_at = 0.0
@@ -76,6 +81,8 @@ class TaskSequencer:
             return
         self.next_index += 1
         self.published += int(published)
+        # the learner updates on published trajectories only (meta task_index = result.index)
+        self.awaiting = result.index + 1 if published else None
         done = self.p.tasks > 0 and self.next_index >= self.p.tasks
         self.phase = "finished" if done else "between"
 
@@ -95,21 +102,22 @@ class TaskSequencer:
         if missing:
             self.log("warn", f"still waiting for {', '.join(missing)} after "
                              f"{p.wait_planner_s:g} s; starting anyway")
-        self.start_version = seen.model_version or 0
         return self._begin(now)
 
     def _model_in(self, now: float, seen: Readiness) -> bool:
-        """The learner's update of every published task arrived (or the wait ran out)."""
-        if self.p.wait_model_s <= 0 or self.published == 0:
+        """The outcome of the learner's update of the last published task is known (or the
+        wait ran out)."""
+        if self.p.wait_model_s <= 0 or self.awaiting is None:
             return True
-        want = (self.start_version or 0) + self.published
-        if (seen.model_version or 0) >= want:
+        if seen.update_known(self.awaiting):
+            self.awaiting = None
             return True
         assert self.since is not None
         if now - self.since >= self.p.wait_model_s:
-            self.log("warn", f"model version {want} did not arrive within "
-                             f"{self.p.wait_model_s:g} s; going on with v{seen.model_version}")
-            self.start_version = (seen.model_version or 0) - self.published  # wait no more
+            self.log("warn", f"the learner's update after task {self.awaiting} did not arrive "
+                             f"within {self.p.wait_model_s:g} s; going on with "
+                             f"v{seen.model_version}")
+            self.awaiting = None  # wait no more
             return True
         return False
 

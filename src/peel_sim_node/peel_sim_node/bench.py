@@ -1,4 +1,4 @@
-"""``peel bench sim --json``: simulator throughput against bare engine stepping (issue 3 §7).
+"""``peel bench sim --json``: simulator throughput against bare engine stepping (docs/simulator.md).
 
 Measures, on this machine and one process:
 

@@ -170,7 +170,7 @@ class SimConfig:
     def from_params(cls, flat: dict[str, Any]) -> SimConfig:
         """Validate a flat parameter dict (dotted names); unknown names or bad values raise
         :class:`~peel_msgs_py.errors.ParameterError` naming the parameter."""
-        # ``node.*`` belongs to the ROS node (issue 7), not to the simulator library
+        # ``node.*`` belongs to the ROS node (docs/graph.md), not to the simulator library
         vals = validate(SPECS, {k: v for k, v in flat.items() if not k.startswith(NODE_GROUP)})
         if vals["task.q_ter_mm"] <= 0.0:
             raise ParameterError(
