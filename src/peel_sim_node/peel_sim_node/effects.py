@@ -99,7 +99,6 @@ class ResidualVacuum:
         return EffectAction(load_n=self.load_n * math.exp(-max(state.q_mm, 0.0) / self.length_mm))
 
 
-
 def load_effect(spec: str) -> Effect:
     """The user effect named ``module:function`` (an importable module and a callable in it,
     ``function(EffectState) -> EffectAction | None``), for ``peel graph --effect``.
