@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -40,12 +41,12 @@ def test_sample_tree_names_each_node_and_reads_its_rss(tmp_path: Path) -> None:
         (tmp_path / name).write_text(HOLD)
     proc = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(tmp_path / "peel_sim_node"),
                              "60", str(tmp_path / "model_learner_node"), "150"],
-                            stdout=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, text=True, start_new_session=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
         rss = sample_tree(proc.pid)
     finally:
-        proc.kill()
+        os.killpg(proc.pid, signal.SIGKILL)  # the launcher and the two holders it started
         proc.wait(timeout=30)
         proc.stdout.close()
     assert set(rss) == {"peel_graph", "peel_sim_node", "model_learner_node"}
