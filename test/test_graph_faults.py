@@ -21,13 +21,8 @@ import subprocess
 from pathlib import Path
 
 import torch
-from test_graph_run import (
-    Lines,
-    assert_clean_logs,
-    graph_cmd,
-    graph_env,
-    read_bag,
-)
+from graph_helpers import Lines, assert_clean_logs, node_env
+from test_graph_run import graph_cmd, read_bag
 
 LONG_WAIT_S = 900.0  # longer than any timeout below
 
@@ -66,7 +61,7 @@ def test_learner_refuses_a_starting_model_with_non_finite_outputs(tmp_path: Path
     learner = f"      init_model: {tmp_path / 'init.safetensors'}\n"
     assert learner in override.read_text()
     override.write_text(override.read_text().replace(learner, f"      init_model: {huge}\n"))
-    res = subprocess.run(cmd, env=graph_env(), capture_output=True, text=True, timeout=300)
+    res = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stdout + res.stderr
     assert "model_learner_node" in res.stderr and "exit status 2" in res.stderr
     log = (tmp_path / "run" / "logs" / "model_learner_node.log").read_text()
@@ -79,7 +74,7 @@ def test_learner_refuses_a_starting_model_with_non_finite_outputs(tmp_path: Path
 def test_failed_update_is_reported_and_the_tasks_go_on(tmp_path: Path, ros_domain: str) -> None:
     """maml.beta = 1e30: every update leaves a model with non-finite outputs."""
     cmd = _cmd(tmp_path, tasks=2, beta=1e30)
-    res = subprocess.run(cmd, env=graph_env(), capture_output=True, text=True, timeout=400)
+    res = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=400)
     out = res.stdout + res.stderr
     assert res.returncode == 3, out  # the exit status says that an update failed
     for k in (1, 2):
@@ -124,7 +119,7 @@ def test_outside_swap_gets_the_next_version_and_does_not_end_the_wait(
     rclpy.init(args=None)
     node = Node("outside_swapper")
     client = node.create_client(SetParameters, "/peel_planner_node/set_parameters")
-    proc = subprocess.Popen(cmd, env=graph_env(), stdout=subprocess.PIPE,
+    proc = subprocess.Popen(cmd, env=node_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
         lines = Lines(proc)

@@ -8,13 +8,13 @@ codes when the bridge gives up (1) and for bad bridge parameters (2, before anyt
 from __future__ import annotations
 
 import json
-import os
 import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from graph_helpers import SMALL_MAML, node_env, read_bag_mcap_ros2
 
 from peel_msgs_py import bagread, topics
 
@@ -26,22 +26,12 @@ peel_planner_node:
       horizon: 3
 model_learner_node:
   ros__parameters:
-    maml:
-      meta_steps: 1
-      support_slices: 4
-      query_slices: 4
-      eval_slices: 4
-      m: 2
+""" + SMALL_MAML + """\
 peel_nachi_bridge:
   ros__parameters:
     safety:
       stall_timeout_s: 1.0   # six processes on two cores; the 300 ms rule has its own tests
 """
-
-
-def _env() -> dict[str, str]:
-    """This test's environment (its ROS domain from the ``ros_domain`` fixture)."""
-    return dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def _graph(tmp: Path, *args: str, override: str = OVERRIDE) -> list[str]:
@@ -55,34 +45,20 @@ def _logs(run_dir: Path) -> dict[str, str]:
     return {p.stem: p.read_text(errors="replace") for p in sorted((run_dir / "logs").glob("*.log"))}
 
 
-def _decoded_mcap(bag: Path) -> dict[str, int]:
-    """Messages per topic as mcap's own ROS 2 decoder reads them (mcap-ros2-support)."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
-    counts: dict[str, int] = {}
-    (path,) = sorted(bag.glob("*.mcap"))
-    with open(path, "rb") as fh:
-        for _, channel, _, _ in make_reader(fh, decoder_factories=[DecoderFactory()]
-                                            ).iter_decoded_messages():
-            counts[channel.topic] = counts.get(channel.topic, 0) + 1
-    return counts
-
-
 def test_graph_runs_against_the_emulator(tmp_path: Path, ros_domain: str) -> None:
     """Two full plant tasks through the graph: the learner's update plans task 2, the bag holds
     every topic, stamps from controller time, and every log is free of tracebacks. The emulator
     runs at half real time (its 1 s watchdog is 2 s of wall time: the planner's first plan
     warms torch up, which took over 1 s on this loaded machine)."""
     emu = subprocess.Popen([sys.executable, "-m", "peel_bringup.cli", "nachi-emulator", "--port",
-                            "0", "--plant", "plant", "--seed", "4", "--speed", "0.5"], env=_env(),
+                            "0", "--plant", "plant", "--seed", "4", "--speed", "0.5"], env=node_env(),
                            stdout=subprocess.PIPE, text=True)
     try:
         first = emu.stdout.readline()  # type: ignore[union-attr]
         port = first.split(":")[1].split()[0]
         cmd = _graph(tmp_path, "--nachi-host", "127.0.0.1", "--nachi-port", port, "--tasks", "2",
                      "--seed", "4", "--record", str(tmp_path / "bag"))
-        out = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=400)
+        out = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=400)
     finally:
         emu.terminate()
         emu_log = emu.communicate(timeout=30)[0]
@@ -120,7 +96,7 @@ def test_graph_runs_against_the_emulator(tmp_path: Path, ros_domain: str) -> Non
         cmds = arrays[topics.CMD_VEL]["u_mmps"][arrays[topics.CMD_VEL]["task"] == k]
         assert len(cmds) >= 4
     assert len(arrays[topics.CLOCK]["t_s"]) > 0
-    counts = _decoded_mcap(tmp_path / "bag")
+    counts = {topic: len(msgs) for topic, msgs in read_bag_mcap_ros2(tmp_path / "bag").items()}
     assert counts[topics.TRAJECTORY] == 2 and counts[topics.WRENCH] == len(arrays[topics.WRENCH]
                                                                             ["t_s"])
 
@@ -137,7 +113,7 @@ def test_graph_exits_1_naming_the_bridge_when_no_controller_answers(tmp_path: Pa
     ``link.give_up_s`` and exits 1; the graph stops the others and exits 1 naming it."""
     override = OVERRIDE + "    link:\n      give_up_s: 1.0\n      backoff_max_s: 0.3\n"
     cmd = _graph(tmp_path, "--nachi-port", str(_free_port()), "--tasks", "1", override=override)
-    out = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    out = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 1, out.stdout + out.stderr
     assert "node peel_nachi_bridge" in out.stderr and "exit status 1" in out.stderr
     bridge_log = _logs(tmp_path / "run")["peel_nachi_bridge"]
@@ -182,7 +158,7 @@ def test_bench_nachi_graph_compares_both_bridges_on_one_seed(tmp_path: Path,
     out = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "bench", "nachi-graph",
                           "--tasks", "1", "--seed", "5", "--speed", "0.5", "--params",
                           str(params), "--out", str(tmp_path / "cmp")],
-                         env=_env(), capture_output=True, text=True, timeout=600)
+                         env=node_env(), capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout + out.stderr
     result = json.loads(out.stdout)
     assert (result["benchmark"], result["seed"], result["tasks"]) == ("nachi-graph", 5, 1)

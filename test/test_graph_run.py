@@ -15,12 +15,11 @@ import re
 import signal
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import yaml
+from graph_helpers import Lines, assert_clean_logs, node_env, read_bag_mcap_ros2
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
@@ -90,66 +89,6 @@ def graph_cmd(tmp: Path, *extra: str, tasks: int = 3, wait_model_s: float = 120.
             "--out", str(tmp / "run"), "--seed", "3", *extra]
 
 
-def graph_env() -> dict[str, str]:
-    """This test's environment (its ROS domain from the ``ros_domain`` fixture)."""
-    return dict(os.environ, PYTHONUNBUFFERED="1")
-
-
-def assert_clean_logs(run_dir: Path) -> None:
-    """Every node stopped on one signal, cleanly: no traceback in any log of the run."""
-    logs = sorted((run_dir / "logs").glob("*.log"))
-    assert len(logs) >= 3
-    for log in logs:
-        text = log.read_text(errors="replace")
-        assert "Traceback" not in text and "KeyboardInterrupt" not in text, (log.name, text[-2000:])
-
-
-def read_bag_mcap_ros2(bag: Path) -> dict[str, list[object]]:
-    """topic -> decoded messages, read with mcap's own ROS 2 decoder (mcap-ros2-support)."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
-    out: dict[str, list[object]] = {}
-    (path,) = sorted(bag.glob("*.mcap"))
-    with open(path, "rb") as fh:
-        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-        for _, channel, _, msg in reader.iter_decoded_messages():
-            out.setdefault(channel.topic, []).append(msg)
-    return out
-
-
-class Lines:
-    """Collect a child's stdout lines in a thread; wait for a pattern."""
-
-    def __init__(self, proc: subprocess.Popen[str]) -> None:
-        self.lines: list[str] = []
-        self.proc = proc
-        self._t = threading.Thread(target=self._read, daemon=True)
-        self._t.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, pattern: str, timeout: float) -> re.Match[str]:
-        rx = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for line in list(self.lines):
-                m = rx.search(line)
-                if m:
-                    return m
-            if self.proc.poll() is not None and not self._t.is_alive():
-                break
-            time.sleep(0.1)
-        raise AssertionError(f"no line matching {pattern!r}; got:\n" + "\n".join(self.lines))
-
-    def join(self) -> str:
-        self._t.join(timeout=10)
-        return "\n".join(self.lines)
-
-
 def read_bag(bag: Path) -> dict[str, list[tuple[float, object]]]:
     """topic -> [(header stamp or log time in s, message)] read with rosbags."""
     out: dict[str, list[tuple[float, object]]] = {}
@@ -191,7 +130,7 @@ def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path, ros_
     same seed, model and parameters."""
     bag = tmp_path / "bag"
     res = subprocess.run(graph_cmd(tmp_path, "--record", str(bag), plant="plant"),
-                         env=graph_env(), capture_output=True, text=True, timeout=400)
+                         env=node_env(), capture_output=True, text=True, timeout=400)
     assert res.returncode == 0, res.stdout + res.stderr
     task_lines = [ln for ln in res.stdout.splitlines() if re.match(r"task \d/3: ", ln)]
     assert len(task_lines) == 3, res.stdout
@@ -292,7 +231,7 @@ def test_learner_killed_planner_keeps_last_good_model(tmp_path: Path, ros_domain
     # its second, so the kill below lands mid-run whatever the machine's load
     proc = subprocess.Popen(graph_cmd(tmp_path, "--record", str(bag), "--keep-going",
                                       wait_model_s=8.0, meta_steps=150),
-                            env=graph_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=node_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
         out = Lines(proc)
@@ -385,13 +324,13 @@ def test_ctrl_c_independent_client_and_clean_stop(tmp_path: Path, ros_domain: st
     stays); Ctrl-C then stops every node on one signal, with no traceback, and a readable bag."""
     bag = tmp_path / "bag"
     proc = subprocess.Popen(graph_cmd(tmp_path, "--record", str(bag), tasks=20),
-                            env=graph_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=node_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
         out = Lines(proc)
         pids = [int(m) for m in re.findall(r"\(pid (\d+)\)", "\n".join(
             [out.wait_for(r"started peel_sim_node \(pid \d+\)", 60).string, *out.lines]))]
-        client = subprocess.run([sys.executable, "-c", INDEPENDENT], env=graph_env(),
+        client = subprocess.run([sys.executable, "-c", INDEPENDENT], env=node_env(),
                                 capture_output=True, text=True, timeout=300)
         out.wait_for(r"task 1/20: ", 300)
         proc.send_signal(signal.SIGINT)
@@ -441,7 +380,7 @@ def test_bad_parameter_is_refused_before_anything_starts(tmp_path: Path, ros_dom
         override.write_text(text)
         res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "graph", "--params",
                               str(override), "--out", str(tmp_path / f"run{i}")],
-                             env=graph_env(), capture_output=True, text=True, timeout=120)
+                             env=node_env(), capture_output=True, text=True, timeout=120)
         assert res.returncode == 2, (text, res.stdout, res.stderr)
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and expected in lines[0], (text, res.stderr)
@@ -457,7 +396,7 @@ def test_node_refusing_its_parameters_exits_2_and_so_does_the_graph(tmp_path: Pa
                         f"      path: {tmp_path / 'missing.safetensors'}\n")
     res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "graph", "--params",
                           str(override), "--out", str(tmp_path / "run"), "--tasks", "1"],
-                         env=graph_env(), capture_output=True, text=True, timeout=300)
+                         env=node_env(), capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stdout + res.stderr
     assert "peel_planner_node" in res.stderr and "exit status 2" in res.stderr
     log = (tmp_path / "run" / "logs" / "peel_planner_node.log").read_text()

@@ -19,6 +19,7 @@ from pathlib import Path
 import matplotlib.image as mpimg
 import pytest
 import torch
+from graph_helpers import SMALL_MAML, node_env
 
 from peel_bringup.soak import memory_summary, sample_tree
 
@@ -90,12 +91,7 @@ model_learner_node:
   ros__parameters:
     node:
       init_model: {init}
-    maml:
-      meta_steps: 1
-      support_slices: 4
-      query_slices: 4
-      eval_slices: 4
-      m: 2
+""" + SMALL_MAML + """\
 peel_bringup:
   ros__parameters:
     graph:
@@ -105,7 +101,7 @@ peel_bringup:
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)
-def test_soak_two_peels_reports_every_node(tmp_path: Path) -> None:
+def test_soak_two_peels_reports_every_node(tmp_path: Path, ros_domain: str) -> None:
     from model_learner_node.checkpoint import save_checkpoint
     from model_learner_node.config import ModelConfig
     from model_learner_node.predictor import ForcePredictor
@@ -115,8 +111,7 @@ def test_soak_two_peels_reports_every_node(tmp_path: Path) -> None:
     override = tmp_path / "override.yaml"
     override.write_text(OVERRIDE.format(init=init))
     out = tmp_path / "soak"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 40),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    env = node_env()
     t0 = time.monotonic()
     proc = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "soak", "--tasks", "2",
                            "--warmup", "1", "--plant", "sim", "--params", str(override),

@@ -10,13 +10,13 @@ processes it starts inherit it.
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from graph_helpers import SMALL_MAML, node_env
 from nachi_rig import SLOT_S, Rig, bridge_cmd
 
 from peel_msgs_py import bagread, topics
@@ -50,11 +50,6 @@ def speed(task: int, t: float) -> float | None:
     if task == 5 and t > 0.4:
         return None
     return 4.0
-
-
-def node_env() -> dict[str, str]:
-    """The environment of the node processes: this test's domain (``ros_domain``)."""
-    return dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def emulator(faults: tuple[str, ...], speed_x: float, q_ter_mm: float | None,
@@ -107,16 +102,7 @@ def test_every_fault_has_its_outcome_in_a_readable_bag(tmp_path: Path, ros_domai
     assert float(np.max(pose["q_mm"])) < 10.0  # mm after bagread: the wire held metres
 
 
-OVERRIDE = """
-model_learner_node:
-  ros__parameters:
-    maml:
-      meta_steps: 1
-      support_slices: 4
-      query_slices: 4
-      eval_slices: 4
-      m: 2
-"""
+OVERRIDE = "model_learner_node:\n  ros__parameters:\n" + SMALL_MAML
 
 
 def _node(name: str, *args: str) -> list[str]:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from graph_helpers import node_env
 from safetensors.torch import load_file, save_file
 
 from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
@@ -100,7 +101,7 @@ def test_swap_service_refuses_with_reason_and_keeps_model(
         tmp_path: Path, ros_domain: str) -> None:
     bad = _bad_files(tmp_path)
     good = _good(tmp_path, "model_v0007")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env = node_env()
     log = (tmp_path / "planner.log").open("wb")
     proc = subprocess.Popen([sys.executable, "-m", "peel_planner_node.node", "--ros-args",
                              "-p", "mppi.n_samples:=8", "-p", "mppi.horizon:=2",

@@ -10,7 +10,6 @@ does the same in-process. A name that does not import is a one-line error, exit 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from graph_helpers import SMALL_MAML, node_env
 from residual_helpers import peel
 
 from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
@@ -55,12 +55,7 @@ model_learner_node:
   ros__parameters:
     node:
       init_model: {model}
-    maml:
-      meta_steps: 1
-      support_slices: 4
-      query_slices: 4
-      eval_slices: 4
-      m: 2
+""" + SMALL_MAML + """\
 peel_bringup:
   ros__parameters:
     graph:
@@ -92,7 +87,7 @@ def test_graph_plans_learns_and_swaps_a_corrected_model_with_an_effect(
     model = corrected(tmp_path)
     override = tmp_path / "override.yaml"
     override.write_text(OVERRIDE.format(model=model))
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env = node_env()
     bag = tmp_path / "bag"
     proc = subprocess.run(
         [sys.executable, "-m", "peel_bringup.cli", "graph", "--plant", "plant", "--tasks", "2",

@@ -1,0 +1,83 @@
+"""What the tests that start node processes share: their environment, a small learner update,
+and a bag read back by mcap's own ROS 2 decoder (``mcap-ros2-support``, independent of ours)."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+# The learner's Algorithm 1 cut down to one meta step on a few slices: the tests check the
+# traffic and the swap, not what an update learns. Indented to sit under ``ros__parameters:``.
+SMALL_MAML = """\
+    maml:
+      meta_steps: 1
+      support_slices: 4
+      query_slices: 4
+      eval_slices: 4
+      m: 2
+"""
+
+
+def node_env() -> dict[str, str]:
+    """The environment of the processes a test starts: its ROS domain (set by the conftest or
+    the ``ros_domain`` fixture) and unbuffered output, so their lines arrive as printed."""
+    return dict(os.environ, PYTHONUNBUFFERED="1")
+
+
+def read_bag_mcap_ros2(bag: Path) -> dict[str, list[object]]:
+    """topic -> decoded messages of the bag folder's one MCAP file."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out: dict[str, list[object]] = {}
+    (path,) = sorted(bag.glob("*.mcap"))
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for _, channel, _, msg in reader.iter_decoded_messages():
+            out.setdefault(channel.topic, []).append(msg)
+    return out
+
+
+def assert_clean_logs(run_dir: Path) -> None:
+    """Every node stopped on one signal, cleanly: no traceback in any log of the run."""
+    logs = sorted((run_dir / "logs").glob("*.log"))
+    assert len(logs) >= 3
+    for log in logs:
+        text = log.read_text(errors="replace")
+        assert "Traceback" not in text and "KeyboardInterrupt" not in text, (log.name, text[-2000:])
+
+
+class Lines:
+    """Collect a child's stdout lines in a thread; wait for a pattern."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self.lines: list[str] = []
+        self.proc = proc
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait_for(self, pattern: str, timeout: float) -> re.Match[str]:
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in list(self.lines):
+                m = rx.search(line)
+                if m:
+                    return m
+            if self.proc.poll() is not None and not self._t.is_alive():
+                break
+            time.sleep(0.1)
+        raise AssertionError(f"no line matching {pattern!r}; got:\n" + "\n".join(self.lines))
+
+    def join(self) -> str:
+        self._t.join(timeout=10)
+        return "\n".join(self.lines)
