@@ -100,3 +100,29 @@ def test_control_loop_and_task_sequence_in_lockstep() -> None:
         assert traj.outcome in ("done", "timeout", "safety_stop")
         assert loop.rows[0][0] == 0.0  # the task's own time restarts at 0
     seq.close()
+
+
+def _commands(loop: ControlLoop) -> list[float]:
+    """The commands of one task through the lockstep protocol."""
+    seq, out = _seq(), []
+    pending = [seq.start(0)]
+    while not seq.ended:
+        answers = [loop.on_sample(s) for s in pending]
+        answer = next((a for a, s in zip(answers, pending) if a is not None
+                       and s.stamp_ns == seq.awaiting), None)
+        if answer is None:
+            break
+        out.append(answer.u_mmps)
+        pending = seq.apply(answer.stamp_ns, answer.u_mmps)
+    seq.close()
+    return out
+
+
+def test_warm_up_plans_once_and_leaves_the_tasks_plans_unchanged() -> None:
+    """The planner node's warm-up plan (before its first task) uses a planner of its own: the
+    commands of the task that follows are the same as without it."""
+    cold = _commands(_loop())
+    warm_loop = _loop()
+    seconds = warm_loop.warm_up(10)
+    assert seconds > 0.0 and warm_loop.task == -1 and warm_loop.rows == []
+    assert len(cold) >= 2 and _commands(warm_loop) == cold

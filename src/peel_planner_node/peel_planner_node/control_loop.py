@@ -14,6 +14,7 @@ run one OL-MPPI cycle at every control instant (docs/graph.md, "Time and lockste
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,6 +97,20 @@ class ControlLoop:
 
     def set_dynamics(self, dynamics: Any) -> None:
         self.planner.set_dynamics(dynamics)
+
+    def warm_up(self, samples: int) -> float:
+        """One throwaway plan (Algorithm 2) on a resting history of ``samples`` samples, by a
+        planner of its own (its own generator: the tasks' plans are unchanged), so that torch's
+        first-call costs are paid before the first task and not inside its first control
+        period, where a robot controller's watchdog may be waiting. Returns its seconds."""
+        rows = np.zeros((max(int(samples), 1), 7))
+        rows[:, 0] = np.arange(len(rows)) * self.cfg.cost.dt_s
+        rows[:, 6] = float("nan")
+        planner = Planner(self.planner.dynamics, Cost(self.cfg.cost), self.cfg)
+        planner.reset()
+        t0 = time.perf_counter()
+        planner.plan(Trajectory.from_array(rows))
+        return time.perf_counter() - t0
 
     def probe_rows(self) -> np.ndarray | None:
         """Measured (q_mm, v_mmps, fx_N, fz_N) rows of the current task, for a probe batch."""

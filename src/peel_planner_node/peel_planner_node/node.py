@@ -61,6 +61,7 @@ class PlannerNode(NamedRefusals, Node):
         self.h = int(pred.h)
         self.loop = ControlLoop(self.cfg, learned_dynamics(pred, self.cfg.dynamics),
                                 self.values["node.seed"])
+        warm_s = self.loop.warm_up(self.h)
         self.parts = StateAssembler()
         qos = topics.qos_profile
         self.pub_cmd = self.create_publisher(TwistStamped, topics.CMD_VEL, qos(topics.CMD_VEL))
@@ -79,7 +80,7 @@ class PlannerNode(NamedRefusals, Node):
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"planner ready: model v{self.version} ({path.name}), "
                                f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}, "
-                               f"{self.loop.planner.dynamics.describe()}")
+                               f"{self.loop.planner.dynamics.describe()}; warm-up plan {warm_s * 1e3:.0f} ms")
 
     def announce(self) -> None:
         """Publish the model version once the command's readers are matched: the simulator
