@@ -108,7 +108,7 @@ def _commands(loop: ControlLoop) -> list[float]:
     pending = [seq.start(0)]
     while not seq.ended:
         answers = [loop.on_sample(s) for s in pending]
-        answer = next((a for a, s in zip(answers, pending) if a is not None
+        answer = next((a for a, s in zip(answers, pending, strict=True) if a is not None
                        and s.stamp_ns == seq.awaiting), None)
         if answer is None:
             break
