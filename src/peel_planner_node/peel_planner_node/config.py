@@ -81,7 +81,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("mppi.control_cost_sigma", str, "sigma0",
               "Sigma in Eq. 38's control term: the re-estimated Sigma or sigma0",
               choices=("estimate", "sigma0")),
-    ParamSpec("mppi.control_term", str, "joint",
+    ParamSpec("mppi.control_term", str, "per_step",
               "Eq. 38's likelihood ratio: per-step Sigma^-1 (Eq. 36-37) or the joint AR(1) "
               "precision of the horizon", choices=("per_step", "joint")),
     ParamSpec("mppi.noise_correlation", float, 0.8,
@@ -185,7 +185,7 @@ class MppiConfig:
     shift_fill: str = "last"
     control_cost_scale: float = 0.1
     control_cost_sigma: str = "sigma0"
-    control_term: str = "joint"
+    control_term: str = "per_step"
     noise_correlation: float = 0.8
     iterations: int = 1
     seed: int = 0
