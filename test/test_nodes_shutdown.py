@@ -93,3 +93,29 @@ def test_a_signal_while_the_child_still_imports_ends_it_cleanly(module: str, tmp
     assert child.stop(60, signalled=True) == 0, child.log.read_text()
     text = child.log.read_text()
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
+
+
+def test_a_shutdown_between_the_check_and_the_executor_is_a_clean_stop(monkeypatch) -> None:
+    """rclpy's signal handler can shut the context down after ``spin_until_done`` saw it ok and
+    before the executor is built (seen in CI: RCLError, a traceback and then death by the second
+    SIGINT). That is the stop a signal asked for: status 0, nothing raised."""
+    import rclpy
+    from rclpy.node import Node
+
+    from peel_msgs_py.ros import main as ros_main
+
+    real = ros_main.SingleThreadedExecutor
+
+    def shut_down_then_build() -> object:
+        rclpy.shutdown()  # what rclpy's SIGINT handler does, at the worst moment
+        return real()
+
+    monkeypatch.setattr(ros_main, "SingleThreadedExecutor", shut_down_then_build)
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # run_node replaces it
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert ros_main.run_node("probe", lambda: Node("probe"), ["probe"]) == 0
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    assert not rclpy.ok()

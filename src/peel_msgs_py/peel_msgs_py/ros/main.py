@@ -44,7 +44,12 @@ def spin_until_done(node: Node) -> int:
     """Spin ``node`` until ``node.done`` (if it has one) or shutdown; its ``exit_status``."""
     if not rclpy.ok():  # a signal during the node's construction: nothing to spin
         return 0
-    executor = SingleThreadedExecutor()
+    try:
+        executor = SingleThreadedExecutor()
+    except Exception:
+        if rclpy.ok():
+            raise
+        return 0  # a signal shut the context down between the check above and here
     executor.add_node(node)
     try:
         while rclpy.ok() and not getattr(node, "done", False):
@@ -79,12 +84,13 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
     """Run one node process; returns its exit status (module docstring)."""
     argv = list(sys.argv if args is None else args)
     node: Node | None = None
-    status = 0
+    status, started = 0, False
     signals = _Signals()  # before rclpy.init: rclpy's handler chains to this one
     held_signals.release()  # a signal held since the process started (launcher) arrives now
     try:
         ros_args_overrides(argv, name)
         rclpy.init(args=argv)
+        started = True
         if signals.received is None:  # else stopped before ROS started: nothing to build
             node = make()
             status = spin_until_done(node)
@@ -94,9 +100,10 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
     except (KeyboardInterrupt, ExternalShutdownException):
         status = 0
     except Exception:
-        if signals.received is None:
+        if signals.received is None and (not started or rclpy.ok()):
             raise
-        status = 0  # a consequence of the shutdown the signal asked for
+        status = 0  # a consequence of the shutdown a signal asked for (its Python-level
+        #             handler may not have run yet when rclpy's had shut the context down)
     finally:
         if node is not None:
             node.destroy_node()
