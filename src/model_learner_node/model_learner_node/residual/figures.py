@@ -68,6 +68,15 @@ def _binned(x: np.ndarray, y: np.ndarray, bins: int = 20) -> tuple[np.ndarray, .
     return np.array(cx), np.array(my), np.array(se)
 
 
+def _save(fig: plt.Figure, path: Path, legend_on: plt.Axes | None = None) -> None:
+    """Legend on ``legend_on`` (if given), tight layout, PNG at 110 dpi, figure closed."""
+    if legend_on is not None:
+        legend_on.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def effect_figure(path: Path, title: str, xlabel: str, unit: str, x: np.ndarray,
                   partial: np.ndarray, contribution: np.ndarray) -> None:
     """Binned partial residual and the term's contribution over the effect's variable."""
@@ -100,10 +109,7 @@ def rmse_figure(path: Path, before: dict, after: dict) -> None:
         ax.set_xticks(xs, ["one step", "open loop"])
         ax.set_title(f"{ch} ({UNITS[ch]})")
         ax.set_ylabel("RMSE, held-out tasks")
-    np.atleast_1d(axes)[0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path, legend_on=np.atleast_1d(axes)[0])
 
 
 def horizon_figure(path: Path, before: dict, after: dict, dt_s: float) -> None:
@@ -119,10 +125,7 @@ def horizon_figure(path: Path, before: dict, after: dict, dt_s: float) -> None:
         ax.set_xlabel("open-loop time (s)")
         ax.set_title(f"{ch} ({UNITS[ch]})")
         ax.set_ylabel("RMSE, held-out tasks")
-    np.atleast_1d(axes)[0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path, legend_on=np.atleast_1d(axes)[0])
 
 
 def remains_figure(path: Path, channel: str, s: Steps, resid: np.ndarray,
@@ -152,3 +155,4 @@ def safe_name(text: str) -> str:
 
 __all__: list[Any] = ["effect_figure", "horizon_figure", "remains_figure", "rmse_figure",
                       "safe_name", "variable_values", "xlabel"]
+
