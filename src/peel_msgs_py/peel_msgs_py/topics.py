@@ -18,8 +18,9 @@ Choices (docs/interfaces.md gives the reasons at length):
 * latched state (``/peel/model_version``, ``/peel/model_info``) is RELIABLE, KEEP_LAST 1,
   TRANSIENT_LOCAL so a late joiner (and the recorder) gets the current value, as ``/tf_static``
   does;
-* ``/peel/model_update`` (one report per task from the learner) is RELIABLE, KEEP_LAST 10, like
-  the trajectory it answers;
+* ``/peel/model_update`` (one report per task from the learner) is RELIABLE, KEEP_LAST 10,
+  TRANSIENT_LOCAL: a reader matched late (Fast DDS took up to 3 s to match a new process here,
+  longer than a short run) still gets the last 10 reports instead of waiting for one forever;
 * ``/clock`` is published RELIABLE, KEEP_LAST 1 (matches every subscriber) and subscribed
   BEST_EFFORT, KEEP_LAST 1, as rclpy's time source does (matches every publisher).
 """
@@ -95,6 +96,8 @@ STREAM_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
 TRAJECTORY_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
 #: Latched state: the current value reaches subscribers that join later.
 LATCHED_QOS = QosSpec(KEEP_LAST, 1, RELIABLE, TRANSIENT_LOCAL)
+#: The learner's per-task reports: each must arrive, a late reader gets the recent ones.
+REPORT_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, TRANSIENT_LOCAL)
 #: ``/clock`` as published (reliable: matches reliable and best-effort subscribers).
 CLOCK_QOS = QosSpec(KEEP_LAST, 1, RELIABLE, VOLATILE)
 #: ``/clock`` as subscribed (best effort: matches any publisher, as rclpy's time source).
@@ -193,7 +196,7 @@ _TABLE: tuple[TopicSpec, ...] = (
         "published with every /peel/model_version (layout in peel_msgs_py.modelinfo)", "-",
     ),
     TopicSpec(
-        MODEL_UPDATE, "std_msgs/msg/String", None, TRAJECTORY_QOS, "model_learner_node",
+        MODEL_UPDATE, "std_msgs/msg/String", None, REPORT_QOS, "model_learner_node",
         "what became of the learner's update after each task, JSON: producer, task, status "
         "(swapped / refused / failed / skipped), reason, sha256, path "
         "(peel_msgs_py.modelinfo)", "-",
