@@ -27,3 +27,12 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch) -> str:
     domain = str(discovery.domain_for(os.getpid(), next(_offsets)))
     monkeypatch.setenv(discovery.DOMAIN_VAR, domain)
     return domain
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A test that takes a ROS domain of its own starts a graph: it must be marked ``process``
+    so that ``scripts/flaky.sh`` repeats it."""
+    unmarked = [it.nodeid for it in items
+                if "ros_domain" in getattr(it, "fixturenames", ()) and "process" not in it.keywords]
+    if unmarked:
+        raise pytest.UsageError("tests with a ros_domain but no 'process' mark: " + ", ".join(unmarked))

@@ -17,6 +17,8 @@ from peel_msgs_py import bagread
 from peel_msgs_py.bag import mcap_is_complete, repair_bag
 from peel_msgs_py.errors import PeelError
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 STORE = get_typestore(Stores.ROS2_JAZZY)
 
 # Writes wrench messages whose force.x is their index. Mode "explicit": 5 chunks of 10 flushed

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -12,11 +13,15 @@ import textwrap
 import time
 
 import numpy as np
+import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from peel_msgs_py import bagread
 from peel_msgs_py.bag import mcap_is_complete
+from peel_msgs_py.errors import PeelError
+
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 N = 50  # wrench messages published, force.x = index
@@ -26,6 +31,7 @@ PUBLISHER = textwrap.dedent(f"""
     import numpy as np
     import rclpy
     from geometry_msgs.msg import Vector3, Wrench, WrenchStamped
+    from rclpy.duration import Duration
     from rclpy.node import Node
     from std_msgs.msg import Float64MultiArray, Int64
     from peel_msgs_py import codec, topics as T
@@ -48,8 +54,8 @@ PUBLISHER = textwrap.dedent(f"""
                       fz=[0.0, -1.0], psi=[np.nan, 0.1], outcome="timeout", params={{"mu": 0.5}},
                       meta={{"task_index": 1}})
     pubs[T.TRAJECTORY].publish(codec.trajectory_to_msg(traj))
-    print("published", flush=True)
-    time.sleep(1.0)
+    acked = all(p.wait_for_all_acked(Duration(seconds=60)) for p in pubs.values())
+    print("published" if acked else "not acknowledged", flush=True)
     node.destroy_node()
     rclpy.shutdown()
 """)
@@ -70,6 +76,25 @@ def _publish() -> None:
     out = subprocess.run([sys.executable, "-c", PUBLISHER], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0 and "published" in out.stdout, out.stderr
+
+
+def _wait_until_on_disk(bag, tmp) -> None:
+    """Until the bag's flushed chunks (read from a copy, repaired) hold the trajectory and the
+    last wrench: the recorder's time-based flush has put everything on disk."""
+    deadline = time.monotonic() + 120  # only a hang reaches this
+    while time.monotonic() < deadline:
+        copy = tmp / f"copy_{time.monotonic_ns()}"
+        shutil.copytree(bag, copy)
+        try:
+            if (len(bagread.read_trajectories(copy, repair=True)) == 1
+                    and bagread.read_topics(copy, repair=True)["/peel/wrench"]["fx_n"][-1] == N - 1):
+                return
+        except (PeelError, KeyError, ValueError, IndexError):
+            pass  # nothing flushed yet
+        finally:
+            shutil.rmtree(copy)
+        time.sleep(0.1)
+    raise AssertionError("the recorder never flushed the last messages")
 
 
 def _wrench_x(bag) -> list[float]:
@@ -122,7 +147,7 @@ def test_sigkilled_recorder_keeps_flushed_chunks(tmp_path, ros_domain) -> None:
                           "/peel/trajectory")
     try:
         _publish()
-        time.sleep(0.6)  # > flush interval + tick: the last chunk is on disk
+        _wait_until_on_disk(bag, tmp_path)
     finally:
         os.kill(rec.pid, signal.SIGKILL)
         rec.communicate(timeout=60)

@@ -6,6 +6,10 @@ import json
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 
 def test_bench_ros_prints_round_trips(ros_domain: str) -> None:
     res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "bench", "ros", "--messages",

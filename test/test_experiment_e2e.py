@@ -20,6 +20,8 @@ from model_learner_node.config import ModelConfig
 from model_learner_node.predictor import ForcePredictor, fit_normalization
 from model_learner_node.synthetic import synthetic_trajectory
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 TASK_KEYS = {"cost", "t_cpl", "sum_fx", "sum_fz", "outcome", "model_version", "update_s"}
 METHODS = ["ol-mppi", "baseline1", "baseline2"]
 

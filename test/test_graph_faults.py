@@ -20,9 +20,12 @@ import json
 import subprocess
 from pathlib import Path
 
+import pytest
 import torch
 from graph_helpers import Lines, assert_clean_logs, node_env
 from test_graph_run import graph_cmd, read_bag
+
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 LONG_WAIT_S = 900.0  # longer than any timeout below
 

@@ -18,6 +18,8 @@ from graph_helpers import SMALL_MAML, node_env, read_bag_mcap_ros2
 
 from peel_msgs_py import bagread, topics
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 OVERRIDE = """
 peel_planner_node:
   ros__parameters:

@@ -18,10 +18,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 from graph_helpers import Lines, assert_clean_logs, node_env, read_bag_mcap_ros2
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
+
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOT_S = 20.0  # node.task_slot_s in the override: task i starts at ROS time i * SLOT_S

@@ -15,13 +15,16 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import matplotlib.image as mpimg
 import pytest
 import torch
 from graph_helpers import SMALL_MAML, node_env
 
-from peel_bringup.soak import memory_summary, sample_tree
+from peel_bringup.soak import Watch, _markdown, build_report, memory_summary, sample_tree
+
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 # A "launcher" that starts two processes run as console scripts named like nodes; each holds
 # the given number of MB, then all wait to be killed.
@@ -65,8 +68,28 @@ def test_memory_summary_flat_growth_and_slope() -> None:
     assert learner["rss_mb_first"] == 310.0 and learner["rss_mb_at_warmup"] == 350.0
     assert learner["growth_after_warmup_mb"] == 40.0 and learner["flat"] is False
     assert learner["slope_mb_per_task"] == pytest.approx(2.0, abs=0.01)
+    assert (mem["sim"]["verdict"], learner["verdict"]) == ("flat", "grew")
     short = memory_summary(tasks[:5], warmup=10, max_growth_mb=25.0)
     assert short["learner"]["flat"] is None  # too few tasks to say
+    assert short["learner"]["verdict"] == "too_few_tasks"
+
+
+def test_a_node_with_no_sample_after_the_warmup_is_named_not_judged() -> None:
+    """The last task's line can be read after the graph began stopping its nodes: a node seen
+    only before the warm-up ends has no growth to judge, and the report says so."""
+    tasks = [{"task": 1, "rss_mb": {"peel_graph": 90.0, "learner": 300.0}},
+             {"task": 2, "rss_mb": {"peel_graph": 91.0}}]
+    mem = memory_summary(tasks, warmup=1, max_growth_mb=25.0)
+    assert mem["learner"]["verdict"] == "no_sample_after_warmup"
+    assert mem["learner"]["flat"] is None and mem["learner"]["growth_after_warmup_mb"] is None
+    assert mem["learner"]["rss_mb_last"] == 300.0
+    assert mem["peel_graph"]["verdict"] == "flat" and mem["peel_graph"]["flat"] is True
+    args = SimpleNamespace(argv=[], tasks=2, plant="sim", seed=0, params=None, warmup=1,
+                           max_growth_mb=25.0)
+    watch = Watch(tasks=[{**t, "outcome": "done", "t_s": 0.0} for t in tasks])
+    rep = build_report(args, 0, watch, None, 1.0)
+    assert rep["memory_flat"] is None and rep["nodes"]["learner"]["verdict"] == "no_sample_after_warmup"
+    assert "| learner | 300.0 | - | 300.0 | 300.0 | - | - | no_sample_after_warmup |" in _markdown(rep)
 
 
 OVERRIDE = """
@@ -135,9 +158,15 @@ def test_soak_two_peels_reports_every_node(tmp_path: Path, ros_domain: str) -> N
         assert all(mb > 30 for mb in t["rss_mb"].values())  # python + numpy at least
     assert len(rep["samples"]) >= 2 and rep["samples"][-1]["t_s"] <= time.monotonic() - t0
     for name, node in rep["nodes"].items():
-        assert node["flat"] == (node["growth_after_warmup_mb"] <= 25.0), name
+        if node["verdict"] in ("flat", "grew"):
+            assert node["flat"] == (node["growth_after_warmup_mb"] <= 25.0), name
+        else:  # the node had stopped before task 2's line was read
+            assert node["verdict"] == "no_sample_after_warmup" and node["flat"] is None, name
+            assert f"memory of {name} not judged" in proc.stderr
         assert printed["nodes"][name]["rss_mb_last"] == node["rss_mb_last"]
-    assert proc.returncode == (0 if rep["memory_flat"] and rep["safety_stops"] == 0 else 1)
+    assert "peel_graph" in rep["nodes"] and rep["nodes"]["peel_graph"]["verdict"] != "no_sample_after_warmup"
+    grew = rep["memory_flat"] is False
+    assert proc.returncode == (1 if grew or rep["safety_stops"] else 0)
     md = (out / "soak.md").read_text()
     assert "| peel_planner_node |" in md and f"safety stops: {rep['safety_stops']}" in md
     assert mpimg.imread(out / "soak_rss.png").ndim == 3

@@ -26,6 +26,8 @@ from peel_sim_node.config import load_sim_config
 from peel_sim_node.env import PeelEnv
 from peel_sim_node.lockstep import task_params, task_seed
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 Speed = Callable[[int, float], "float | None"]
 
 

@@ -25,6 +25,8 @@ from peel_nachi_bridge.faults import parse_fault
 from peel_nachi_bridge.robot import Robot
 from peel_sim_node.config import load_sim_config
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: One fault per task (the emulator's task k = the node's task k), plus a first connection

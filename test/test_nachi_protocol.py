@@ -21,6 +21,8 @@ from peel_nachi_bridge.parameters import NODE_NAME
 from peel_nachi_bridge.robot import Robot
 from peel_sim_node.config import load_sim_config
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -12,6 +12,8 @@ import time
 
 import pytest
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 
 def _start(module: str, *args: str) -> subprocess.Popen[str]:
     proc = subprocess.Popen([sys.executable, "-m", module, "--ros-args", *args],

@@ -30,6 +30,8 @@ from model_learner_node.config import ModelConfig
 from model_learner_node.predictor import ForcePredictor
 from peel_planner_node.model_check import validate_model
 
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
+
 
 def _model(tmp: Path) -> Path:
     """A freshly initialised (seeded) model: the running and the reference checkpoint."""

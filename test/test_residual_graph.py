@@ -16,6 +16,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 from graph_helpers import SMALL_MAML, node_env
 from residual_helpers import peel
@@ -27,6 +28,8 @@ from model_learner_node.effect_terms import Candidate, Term
 from model_learner_node.predictor import ForcePredictor, fit_normalization
 from model_learner_node.synthetic import synthetic_trajectory
 from peel_msgs_py.bagread import read_trajectories
+
+pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 EFFECT = "peel_sim_node.example_effects:slipping_axis"
 TERMS = [Term(Candidate("near_start_hold", 4.0), "fz", (1.0,)),

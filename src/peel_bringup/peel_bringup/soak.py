@@ -14,6 +14,12 @@ the recorder), so it works whatever runtime the nodes use.
 It reports, per node, the RSS at the first task, at task ``--warmup`` and at the last task, the
 maximum, the growth after the warm-up and the least-squares slope over the tasks after it
 (MB per task); a node is *flat* when it grew by at most ``--max-growth-mb`` after the warm-up.
+Each node's ``verdict`` says which of four cases holds: ``flat``, ``grew``, ``too_few_tasks``
+(the run ended before two tasks after the warm-up) or ``no_sample_after_warmup`` (the node was
+not running when any task after the warm-up was read, e.g. the graph had begun stopping its nodes
+when the last task's line arrived). ``flat`` is true or false in the first two cases and null in
+the other two, and so is the run's ``memory_flat`` when any node is undetermined: the soak then
+warns on stderr and does not fail on memory (an undetermined node is no measured growth).
 It counts the outcomes (``safety_stop`` = the 20 N prewarning ended a peel, section 4.2).
 Files: ``DIR/soak.json``, ``DIR/soak.md`` and ``DIR/soak_rss.png`` (RSS per node over tasks);
 the graph's own run folder (models, logs, summary) is ``DIR/graph``. The JSON summary is printed
@@ -185,29 +191,39 @@ def run_soak(args: Any, run_dir: Path) -> tuple[int, Watch, bool]:
 def memory_summary(tasks: list[dict[str, Any]], warmup: int, max_growth_mb: float,
                    ) -> dict[str, dict[str, Any]]:
     """Per process: RSS at the first, warm-up and last task, max, growth and slope after the
-    warm-up (MB per task, least squares), and whether it is flat (module docstring)."""
+    warm-up (MB per task, least squares), whether it is flat, and the verdict (module
+    docstring)."""
     names = sorted({n for t in tasks for n in t["rss_mb"]})
+    last_task = max((t["task"] for t in tasks), default=0)
     out: dict[str, dict[str, Any]] = {}
     for name in names:
         pts = [(t["task"], t["rss_mb"][name]) for t in tasks if name in t["rss_mb"]]
-        if not pts:
-            continue
         k = np.array([p[0] for p in pts], dtype=float)
         mb = np.array([p[1] for p in pts])
-        after = k >= warmup
-        rec: dict[str, Any] = {"rss_mb_first": round(float(mb[0]), 1),
-                               "rss_mb_last": round(float(mb[-1]), 1),
-                               "rss_mb_max": round(float(mb.max()), 1),
-                               "rss_mb_at_warmup": None, "growth_after_warmup_mb": None,
-                               "slope_mb_per_task": None, "flat": None}
-        if after.sum() >= 2 and k[-1] > warmup:
-            base = float(mb[after][0])
-            rec["rss_mb_at_warmup"] = round(base, 1)
-            rec["growth_after_warmup_mb"] = round(float(mb[-1]) - base, 1)
-            rec["slope_mb_per_task"] = round(float(np.polyfit(k[after], mb[after], 1)[0]), 3)
-            rec["flat"] = bool(float(mb[after].max()) - base <= max_growth_mb)
-        out[name] = rec
+        out[name] = _node_memory(k, mb, warmup, max_growth_mb, enough=last_task > warmup)
     return out
+
+
+def _node_memory(k: np.ndarray, mb: np.ndarray, warmup: int, max_growth_mb: float,
+                 enough: bool) -> dict[str, Any]:
+    """One process's memory record from its per-task samples (task indices ``k``, MB ``mb``);
+    ``enough``: the run itself reached two tasks from the warm-up on."""
+    after = k >= warmup
+    rec: dict[str, Any] = {"rss_mb_first": round(float(mb[0]), 1),
+                           "rss_mb_last": round(float(mb[-1]), 1),
+                           "rss_mb_max": round(float(mb.max()), 1),
+                           "rss_mb_at_warmup": None, "growth_after_warmup_mb": None,
+                           "slope_mb_per_task": None, "flat": None}
+    if not enough:
+        return {**rec, "verdict": "too_few_tasks"}
+    if after.sum() < 2:
+        return {**rec, "verdict": "no_sample_after_warmup"}
+    base = float(mb[after][0])
+    rec["rss_mb_at_warmup"] = round(base, 1)
+    rec["growth_after_warmup_mb"] = round(float(mb[-1]) - base, 1)
+    rec["slope_mb_per_task"] = round(float(np.polyfit(k[after], mb[after], 1)[0]), 3)
+    rec["flat"] = bool(float(mb[after].max()) - base <= max_growth_mb)
+    return {**rec, "verdict": "flat" if rec["flat"] else "grew"}
 
 
 def build_report(args: Any, status: int, watch: Watch, summary: dict[str, Any] | None,
@@ -253,12 +269,12 @@ def _markdown(rep: dict[str, Any]) -> str:
         f"after tasks: {', '.join(map(str, rep['failed_updates'] or [])) or 'none'}.", "",
         f"Memory (VmRSS, MB) per process; flat = grew by at most {rep['max_growth_mb']:g} MB "
         f"after task {rep['warmup_tasks']}:", "",
-        "| process | task 1 | warm-up | last | max | growth after warm-up | slope MB/task | flat |",
+        "| process | task 1 | warm-up | last | max | growth after warm-up | slope MB/task | verdict |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for name, v in rep["nodes"].items():
         cells = [v["rss_mb_first"], v["rss_mb_at_warmup"], v["rss_mb_last"], v["rss_mb_max"],
-                 v["growth_after_warmup_mb"], v["slope_mb_per_task"], v["flat"]]
+                 v["growth_after_warmup_mb"], v["slope_mb_per_task"], v["verdict"]]
         lines.append(f"| {name} | " + " | ".join("-" if c is None else str(c) for c in cells)
                      + " |")
     lines += ["", "![RSS per process over tasks](soak_rss.png)", "",
@@ -332,10 +348,13 @@ def main(argv: list[str] | None = None) -> int:
     brief = {k: rep[k] for k in ("tasks", "tasks_finished", "outcomes", "safety_stops",
                                  "memory_flat", "graph_exit_status", "wall_s")}
     brief["nodes"] = {n: {k: v[k] for k in ("rss_mb_first", "rss_mb_at_warmup", "rss_mb_last",
-                                            "growth_after_warmup_mb", "flat")}
+                                            "growth_after_warmup_mb", "flat", "verdict")}
                       for n, v in rep["nodes"].items()}
     brief["report"] = str(run_dir / "soak.md")
     print(json.dumps(brief, indent=1))
+    for name, v in rep["nodes"].items():
+        if v["flat"] is None:
+            print(f"warning: memory of {name} not judged: {v['verdict']}", file=sys.stderr)
     if interrupted:
         return 130
     if status != 0:

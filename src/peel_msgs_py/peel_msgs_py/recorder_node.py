@@ -10,6 +10,12 @@ they offer and the type hash (RIHS01) they announce, both from their endpoint in
 text is the Jazzy definition from ``rosbags``' typestore. Chunks are flushed by size and by
 age (:class:`~peel_msgs_py.bag.BagWriter`); the same timer ticks the writer so that a quiet
 topic's open chunk still reaches the disk within ``flush_interval_s``.
+
+The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' own depth is 10):
+a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
+what its DDS reader already holds instead of losing the oldest. On a stop the recorder first
+takes every message its readers hold (:func:`drain`), so a message that reached the recorder's
+process before the stop is in the bag.
 """
 
 from __future__ import annotations
@@ -31,6 +37,10 @@ from .topics import qos_profile, topic
 NODE_NAME = "peel_recorder"
 #: Period of the writer tick (s): graph poll, time-based chunk flushes, metadata refreshes.
 TICK_PERIOD_S = 0.2
+#: Messages each subscription's reader keeps until the executor takes them.
+RECORDER_DEPTH = 1000
+#: Longest time a stop spends taking the messages the readers hold (s).
+DRAIN_LIMIT_S = 5.0
 
 
 def message_class(type_name: str) -> Any:
@@ -58,7 +68,7 @@ class RecorderNode(Node):
         for spec in self.specs.values():
             self.create_subscription(message_class(spec.type), spec.name,
                                      partial(self.on_message, spec.name),
-                                     qos_profile(spec, subscriber=True), raw=True)
+                                     recorder_qos(spec), raw=True)
         self.create_timer(TICK_PERIOD_S, self.on_tick)
 
     def on_message(self, topic_name: str, data: bytes, info: Any) -> None:
@@ -90,6 +100,26 @@ class RecorderNode(Node):
         self.registered.add(name)
 
 
+def recorder_qos(spec: Any) -> Any:
+    """The subscriber profile of ``spec`` with a history of at least ``RECORDER_DEPTH``."""
+    profile = qos_profile(spec, subscriber=True)
+    profile.depth = max(profile.depth, RECORDER_DEPTH)
+    return profile
+
+
+def drain(node: RecorderNode, limit_s: float = DRAIN_LIMIT_S) -> int:
+    """Take the messages the node's readers hold, until one pass takes none (or ``limit_s``);
+    returns how many were written."""
+    start, t0 = node.received, time.monotonic()
+    while time.monotonic() - t0 < limit_s:
+        before = node.received
+        for _ in range(50):
+            rclpy.spin_once(node, timeout_sec=0.0)
+        if node.received == before:
+            break
+    return node.received - start
+
+
 def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
            stop: Any) -> None:
     """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``."""
@@ -104,6 +134,8 @@ def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
             if duration_s is not None and time.monotonic() - t0 >= duration_s:
                 break
             rclpy.spin_once(node, timeout_sec=0.05)
+        if rclpy.ok():
+            drain(node)
     finally:
         if node is not None:
             node.destroy_node()
