@@ -163,7 +163,7 @@ def test_grid_runs_cells_and_writes_one_report(setup: dict[str, Path]) -> None:
     """`peel experiment grid`: one cell run, then a report-only call that adds a cell it has
     not run (listed as missing, nothing peeled); files read back by json and matplotlib."""
     out = setup["dir"] / "grid"
-    common = ["--tasks", "2", "--seeds", "0,1,2", "--out", str(out), "--checkpoint",
+    common = ["--tasks", "2", "--seeds", "0,1", "--out", str(out), "--checkpoint",
               str(setup["ckpt"]), "--workers", "2", "--learner-params", str(setup["learner"]),
               *_small(setup)]
     proc = _peel("experiment", "grid", "--levels", "3", "--sequences", "drift", *common)
@@ -178,9 +178,9 @@ def test_grid_runs_cells_and_writes_one_report(setup: dict[str, Path]) -> None:
     assert fr == [p["friction"] for p in want]
     summary = json.loads((out / "summary.json").read_text())
     c = summary["cells"]["L3_drift"]
-    assert c["headroom"]["n"] == 3 and c["headroom"]["ci95"] is not None
+    assert c["headroom"]["n"] == 2 and c["headroom"]["ci95"] is not None  # two seeds: an interval
     for m in ("ol-mppi", "baseline1", "baseline2", "oracle"):
-        assert c["metrics"][m]["peels"] == 6
+        assert c["metrics"][m]["peels"] == 4
         assert set(c["metrics"][m]) >= {"cost", "t_cpl", "sum_fx", "sum_fz", "peak_force",
                                         "safety_stops"}
     proc = _peel("experiment", "grid", "--levels", "3,0", "--sequences", "drift",

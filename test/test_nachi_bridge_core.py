@@ -258,7 +258,7 @@ def test_closing_the_bridge_stops_a_running_task() -> None:
     bridge = NachiBridge(cfg.link, cfg.safety, driver)
     driver.bridge = bridge
     bridge.start().request_task(0)
-    emu.wait_for("v", 10.0, count=2)
+    emu.wait_for("v", 120.0, count=2)
     bridge.close()
     emu.close()
     assert outcomes(driver) == [("aborted", "shutdown")]

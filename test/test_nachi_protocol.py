@@ -154,7 +154,7 @@ class Reader:
         self.sock, self.split = sock, p.LineSplitter()
         sock.settimeout(0.2)
 
-    def lines(self, n: int, until: bytes | None = None, timeout_s: float = 10.0) -> list[bytes]:
+    def lines(self, n: int, until: bytes | None = None, timeout_s: float = 120.0) -> list[bytes]:
         out: list[bytes] = []
         end = time.monotonic() + timeout_s
         while len(out) < n and (until is None or until not in out) and time.monotonic() < end:
@@ -190,7 +190,7 @@ def test_emulator_over_tcp() -> None:
             assert ts[:4] == [0.0, 0.1, 0.2, 0.3]
             a.sendall(b"STOP\n")
             assert b"OK STOP\n" in ra.lines(100, until=b"OK STOP\n")
-        assert emu.wait_for("disconnect", 5.0)
+        assert emu.wait_for("disconnect", 120.0)
         assert [e.kind for e in emu.events].count("refused_client") == 1
     finally:
         emu.close()
