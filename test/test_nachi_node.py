@@ -121,8 +121,9 @@ def test_full_tasks_with_the_planner_and_the_learner(tmp_path: Path, ros_domain:
     env = node_env()
     # half real time (the controller's 1 s watchdog is 2 s of wall time: the planner's first
     # plan, torch warming up, took over 1 s under load) and a 1 s stall rule: five processes
-    # share two cores here; the 300 ms rule and the watchdog have their own tests
-    emu = emulator((), 0.5, None, source="plant")
+    # share two cores here; the 300 ms rule and the watchdog have their own tests. The
+    # controller ends each task at 10 mm: 2-3 s of controller time, five or more commands
+    emu = emulator((), 0.5, 10.0, source="plant")
     rig = Rig(ros_domain, tmp_path / "bag", model_version=None)
     procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                               text=True) for cmd in (
