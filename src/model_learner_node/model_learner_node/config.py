@@ -70,6 +70,22 @@ MAML_SPECS: tuple[ParamSpec, ...] = (
 )
 
 
+#: Parameters of the ``gate:`` group: the held-out check of each update before it is offered
+#: (model_learner_node.gate; not in the paper, docs/model.md "A model earns its swap").
+GATE_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("gate.holdout", float, 0.3,
+              "fraction of the newest peel's samples (its end) kept out of the update and used "
+              "to check it; 0 = offer every update unchecked (the paper's Algorithm 1)",
+              min=0.0, max=0.9),
+    ParamSpec("gate.tolerance", float, 0.0,
+              "offer when the update's one-step error (Eq. 39) on the held-out samples is at "
+              "most (1 + tolerance) x the model in use's", min=0.0, max=1.0),
+    ParamSpec("gate.min_samples", int, 10,
+              "fewest held-out samples for a check; a shorter peel is updated on whole, unchecked",
+              min=1),
+)
+
+
 #: Parameters of the ``baseline2:`` group of config/model_learner_node.yaml (section 4.4).
 BASELINE2_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("baseline2.steps", int, 20, "Adam steps per update", min=1),

@@ -10,7 +10,10 @@ planner plans it under is the planner's to give (:mod:`model_learner_node.versio
 file's meta names it instead: ``producer`` (the learner node) and ``task`` (1-based)
 (:func:`~model_learner_node.versions.update_meta`).
 
-A model is only offered when it predicts finite forces on the probe batch
+An update of Algorithm 1 is offered only when it earns its swap (:class:`~model_learner_node.gate.HeldOutGate`:
+fitted without the newest peel's end, no worse than the model in use on it; else ``skipped``
+with both errors named, the learner back on the weights in use; baseline 2 is the paper's), and
+any update only when it predicts finite forces on the probe batch
 (:func:`~model_learner_node.validation.check_finite_outputs`, the planner's own swap check): the
 starting model is refused at construction (:class:`~peel_msgs_py.errors.CheckpointError`, so
 the node exits 2), and an update that raises or fails the probe is reported ``failed`` with the
@@ -32,6 +35,7 @@ from peel_msgs_py.modelinfo import FAILED, OFFERED, SKIPPED, UpdateReport
 from peel_msgs_py.trajectory import Trajectory
 
 from .checkpoint import load_checkpoint, read_checkpoint_config, save_checkpoint, shipped_checkpoint
+from .gate import GateConfig, HeldOutGate
 from .replay import ReplayPool
 from .validation import check_finite_outputs
 from .versions import update_meta
@@ -86,7 +90,8 @@ class OnlineLearner:
         if self.method == "maml":
             from .maml import MamlConfig, MetaLearner
 
-            self.learner: Any = MetaLearner(self.predictor, MamlConfig.from_params(values))
+            self.learner: Any = HeldOutGate(MetaLearner(self.predictor, MamlConfig.from_params(values)),
+                                            self.predictor, GateConfig.from_params(values))
         else:
             from .baselines2 import Baseline2Config, HistoryRetrainer
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 
-from .config import BASELINE2_SPECS, MAML_SPECS, MODEL_SPECS, TRAIN_SPECS
+from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, MODEL_SPECS, TRAIN_SPECS
 from .residual.params import RESIDUAL_SPECS
 
 NODE_NAME = "model_learner_node"
@@ -29,5 +29,5 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 
 
 #: Everything the node declares.
-SPECS: tuple[ParamSpec, ...] = (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *BASELINE2_SPECS,
+SPECS: tuple[ParamSpec, ...] = (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *GATE_SPECS, *BASELINE2_SPECS,
                                  *RESIDUAL_SPECS, *NODE_SPECS, USE_SIM_TIME)

@@ -221,11 +221,15 @@ def _trace(traj: Trajectory) -> dict[str, list[float]]:
 
 
 def _updater(method: str, predictor: Any, setup: Setup) -> Any:
+    """The method's between-peel update as model_learner_node runs it: Algorithm 1 behind the
+    held-out check (``gate.*``), baseline 2 as the paper has it; None for the others."""
     if method == "ol-mppi":
+        from model_learner_node.gate import HeldOutGate, load_gate_config
         from model_learner_node.maml import MetaLearner, load_maml_config
 
-        return MetaLearner(predictor, load_maml_config(setup.learner_overrides,
+        meta = MetaLearner(predictor, load_maml_config(setup.learner_overrides,
                                                        **setup.maml_changes))
+        return HeldOutGate(meta, predictor, load_gate_config(setup.learner_overrides))
     if method == "baseline2":
         from model_learner_node.baselines2 import HistoryRetrainer, load_baseline2_config
 
@@ -305,7 +309,7 @@ def run_job(method: str, seed: int, setup: Setup,
                 update_s = float(report["update_s"])
                 rec["update"] = {key: report[key] for key in
                                  ("updated", "query_loss_before", "query_loss_after", "chosen",
-                                  "loss_first", "loss_last", "n_history", "reason")
+                                  "loss_first", "loss_last", "n_history", "reason", "gate")
                                  if key in report}
                 rec["next_update_s"] = update_s
             pool.add(traj)
