@@ -20,9 +20,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ["peel_msgs_py", "peel_sim_node", "peel_nachi_bridge", "model_learner_node", "peel_planner_node",
             "peel_bringup"]
-#: Top-level module -> rosdep key. ROS modules are ROS packages (the key is the package name);
-#: the python3-* keys are those of rosdistro's rosdep/python.yaml (checked against ros/rosdistro
-#: at 8468e88, 2026-08-22: each has an ubuntu entry).
+#: Top-level module -> rosdep key. ROS modules are ROS packages (the key is the package name, each
+#: released in rosdistro's jazzy/distribution.yaml); the python3-* keys are those of rosdistro's
+#: rosdep/python.yaml, each with an ubuntu entry (both checked in ros/rosdistro at 8468e88).
 ROSDEP_KEYS = {
     **{m: m for m in ("rclpy", "std_msgs", "geometry_msgs", "rosgraph_msgs", "builtin_interfaces",
                       "rcl_interfaces", "std_srvs", "diagnostic_msgs", "lifecycle_msgs", "launch",
