@@ -262,7 +262,8 @@ def test_every_node_reports_and_a_refused_model_turns_the_planner_to_warn(
         garbage.write_bytes(os.urandom(256))
         ok, reason = _swap(listener.node, garbage)
         assert not ok and "refused" in reason
-        refused = listener.wait_for("peel_planner_node: planning", lambda s: s.level == WARN, 30, alive)
+        refused = listener.wait_for("peel_planner_node: planning",
+                                    lambda s: s.value("swaps refused") == "1", 30, alive)
     finally:
         listener.close()
         _stop(procs)
@@ -276,7 +277,7 @@ def test_every_node_reports_and_a_refused_model_turns_the_planner_to_warn(
     median, worst = (float(planner.value(f"plan latency {k} (ms)")) for k in ("median", "max"))
     assert 0 < median <= worst
     assert planner.level == OK or int(planner.value("late commands")) > 0
-    assert refused.value("swaps refused") == "1" and "refused" in refused.message
+    assert refused.level == WARN and "model swap refused" in refused.message, refused
     assert refused.value("model version") == "1"  # the last good model plans on
 
 
@@ -305,5 +306,5 @@ def test_a_stalled_controller_stream_turns_the_bridge_to_warn(tmp_path: Path, ro
         emu.close()
     assert up.hardware_id == f"127.0.0.1:{port}"
     assert stalled.level == WARN and "stalled" in stalled.message, stalled
-    assert stalled.value("STOPs") == "1" and stalled.value("reconnects") == "0"
+    assert stalled.value("STOPs") == "1" and int(stalled.value("connects")) >= 1
     assert "Traceback" not in (tmp_path / "bridge.log").read_text(errors="replace")
