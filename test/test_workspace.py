@@ -23,7 +23,8 @@ ALLOWED = {
     "peel_bringup": set(PACKAGES) - {"peel_bringup"},
 }
 ROS_MODULES = {"rclpy", "geometry_msgs", "std_msgs", "rosgraph_msgs", "rcl_interfaces",
-               "builtin_interfaces", "std_srvs", "launch", "launch_ros", "ament_index_python"}
+               "builtin_interfaces", "std_srvs", "diagnostic_msgs", "launch", "launch_ros",
+               "ament_index_python"}
 
 
 @pytest.mark.parametrize("pkg", PACKAGES)

@@ -30,12 +30,15 @@ from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, String
 
 from peel_msgs_py import codec, topics
+from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import FAILED, OFFERED, REFUSED, SWAPPED, UpdateReport
+from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
 
+from .health import LearnerHealth
 from .online import OnlineLearner, task_number
 from .parameters import NODE_NAME, SPECS
 
@@ -62,6 +65,8 @@ class LearnerNode(NamedRefusals, Node):
         self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
                                  topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.closing = threading.Event()
+        self.health = LearnerHealth()
+        publish_diagnostics(self, self.diagnostics)
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
         self.worker.start()
         self.get_logger().info(f"learner ready: {self.learner.describe()}")
@@ -75,18 +80,25 @@ class LearnerNode(NamedRefusals, Node):
     def work(self) -> None:
         """Worker thread: one update per finished task, the swap request, the report."""
         while (traj := self.queue.get()) is not None and not self.closing.is_set():
+            t0 = time.perf_counter()
             report = self.update(traj)
+            update_s = time.perf_counter() - t0
             if self.closing.is_set():
                 return  # the node is shutting down: nothing is offered any more
             try:
                 if report.status == OFFERED:
                     report = self.offer(report)
                 self.pub_update.publish(String(data=report.to_json()))
+                self.health.record(report, update_s)
             except Exception as exc:  # rclpy refuses calls once the node is being destroyed
                 if self.closing.is_set():
                     return
                 self.get_logger().error(f"task {report.task}: the update could not be offered: "
                                         f"{type(exc).__name__}: {exc}")
+
+    def diagnostics(self) -> list[Status]:
+        """The learner's health (:class:`~model_learner_node.health.LearnerHealth`), 1 Hz."""
+        return [self.health.status(self.queue.qsize())]
 
     def update(self, traj: Trajectory) -> UpdateReport:
         """Algorithm 1 on the finished task; a failure becomes a ``failed`` report."""

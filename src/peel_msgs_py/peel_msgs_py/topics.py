@@ -22,7 +22,10 @@ Choices (docs/interfaces.md gives the reasons at length):
   TRANSIENT_LOCAL: a reader matched late (Fast DDS took up to 3 s to match a new process here,
   longer than a short run) still gets the last 10 reports instead of waiting for one forever;
 * ``/clock`` is published RELIABLE, KEEP_LAST 1 (matches every subscriber) and subscribed
-  BEST_EFFORT, KEEP_LAST 1, as rclpy's time source does (matches every publisher).
+  BEST_EFFORT, KEEP_LAST 1, as rclpy's time source does (matches every publisher);
+* ``/diagnostics`` (every node's health, :mod:`peel_msgs_py.diagnostics`) is RELIABLE, KEEP_LAST
+  10, VOLATILE like the streams; it is ROS's standard topic, not a peel one, and not recorded by
+  default (:data:`STATUS_TOPICS`, beside :data:`TOPICS`).
 """
 
 from __future__ import annotations
@@ -146,6 +149,7 @@ MODEL_VERSION = "/peel/model_version"
 MODEL_INFO = "/peel/model_info"
 MODEL_UPDATE = "/peel/model_update"
 CLOCK = "/clock"
+DIAGNOSTICS = "/diagnostics"
 
 #: Prefix of ``header.frame_id`` of every stamped message: the frame of task k is
 #: ``peel_task_<k>`` (see :func:`peel_msgs_py.codec.task_frame_id`): origin at that task's point C,
@@ -207,8 +211,21 @@ _TABLE: tuple[TopicSpec, ...] = (
     ),
 )
 
-#: name -> spec, in table order.
+#: Every node's health (peel_msgs_py.diagnostics), ROS's standard topic: not recorded by default.
+_STATUS_TABLE: tuple[TopicSpec, ...] = (
+    TopicSpec(
+        DIAGNOSTICS, "diagnostic_msgs/msg/DiagnosticArray", 1.0, STREAM_QOS, "every peel node",
+        "one DiagnosticStatus per node part, level OK / WARN / ERROR, the reason as message, "
+        "key values (link state and fault counts, plan() latency against the control period, "
+        "model version, update time and result; docs/interfaces.md); 1 Hz of wall time",
+        "names carry them (s, ms, N)",
+    ),
+)
+
+#: name -> spec, in table order: the peel topics and /clock.
 TOPICS: dict[str, TopicSpec] = {spec.name: spec for spec in _TABLE}
+#: name -> spec of the topics beside them (``/diagnostics``).
+STATUS_TOPICS: dict[str, TopicSpec] = {spec.name: spec for spec in _STATUS_TABLE}
 
 #: What ``peel record`` records by default: every /peel topic and /clock.
 RECORDED_TOPICS: tuple[str, ...] = tuple(TOPICS)
@@ -217,10 +234,10 @@ RECORDED_TOPICS: tuple[str, ...] = tuple(TOPICS)
 def topic(name: str) -> TopicSpec:
     """The spec of a topic of the table; :class:`PeelError` naming it when unknown."""
     try:
-        return TOPICS[name]
+        return TOPICS[name] if name in TOPICS else STATUS_TOPICS[name]
     except KeyError:
         raise PeelError(
-            f"unknown topic {name!r} (known: {', '.join(TOPICS)})"
+            f"unknown topic {name!r} (known: {', '.join([*TOPICS, *STATUS_TOPICS])})"
         ) from None
 
 
@@ -245,7 +262,7 @@ def markdown_table() -> str:
         "| topic | type | rate | QoS | publisher | content | units |",
         "|---|---|---|---|---|---|---|",
     ]
-    for s in _TABLE:
+    for s in (*_TABLE, *_STATUS_TABLE):
         rows.append(
             f"| `{s.name}` | {s.type} | {s.rate_text} | {s.qos.describe()} | {s.publisher} "
             f"| {s.content} | {s.units} |"

@@ -23,8 +23,10 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray, Int64, String
 
 from peel_msgs_py import codec, topics
+from peel_msgs_py.diagnostics import RecentRises, Status
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
+from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
@@ -34,6 +36,7 @@ from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 from . import protocol as p
 from .bridge import NachiBridge
 from .config import BridgeConfig
+from .health import bridge_status
 from .parameters import NODE_NAME, SPECS
 from .sequencer import Readiness, TaskSequencer
 from .task import TaskResult
@@ -74,6 +77,8 @@ class NachiBridgeNode(NamedRefusals, Node):
         self.sequencer = TaskSequencer(self.cfg.node, self.on_log)
         self.bridge = NachiBridge(self.cfg.link, self.cfg.safety, self).start()
         self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.faults = RecentRises()
+        publish_diagnostics(self, self.diagnostics)
         self.get_logger().info(f"bridge to the controller at {self.cfg.link.host}:"
                                f"{self.cfg.link.port} ({p.PROTOCOL} {p.VERSION})")
 
@@ -118,6 +123,12 @@ class NachiBridgeNode(NamedRefusals, Node):
             self.done, self.exit_status = True, 1
         elif self.sequencer.exit_now:
             self.done = True
+
+    def diagnostics(self) -> list[Status]:
+        """The link's health (:func:`~peel_nachi_bridge.health.bridge_status`), 1 Hz."""
+        b = self.bridge
+        return [bridge_status(b.stats, b.state, b.gave_up, f"{self.cfg.link.host}:{self.cfg.link.port}",
+                              b.controller_id, self.faults, time.monotonic())]
 
     # -- bridge listener (called from the bridge thread) ----------------------------------------
     def on_sample(self, index: int, s: p.Sample) -> None:

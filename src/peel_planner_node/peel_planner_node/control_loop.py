@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from peel_msgs_py.diagnostics import DurationWindow
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import PlannerConfig
@@ -94,6 +95,8 @@ class ControlLoop:
         self.answered: dict[int, float] = {}
         self.u_hold = 0.0
         self.cycles = 0
+        #: wall s of each plan() against the control period (steps * dt, 0.5 s): /diagnostics
+        self.latency = DurationWindow(budget_s=self.steps * cfg.cost.dt_s)
 
     def set_dynamics(self, dynamics: Any) -> None:
         self.planner.set_dynamics(dynamics)
@@ -152,7 +155,9 @@ class ControlLoop:
         """One OL-MPPI cycle (Algorithm 2) on the history up to ``s``."""
         history = Trajectory.from_array(np.asarray(self.rows, dtype=np.float64))
         was_stopped = self.planner.stop is not None
+        t0 = time.perf_counter()
         u = float(self.planner.plan(history))
+        self.latency.add(time.perf_counter() - t0)
         self.cycles += 1
         self.u_hold = u
         self.rows[-1][3] = u

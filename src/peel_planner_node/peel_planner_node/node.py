@@ -30,7 +30,9 @@ from std_msgs.msg import Int64, String
 
 from model_learner_node.versions import ModelLedger
 from peel_msgs_py import codec, topics
+from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
@@ -39,6 +41,7 @@ from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
 from .config import PlannerConfig
 from .control_loop import Answer, ControlLoop, StateAssembler
 from .dynamics import learned_dynamics
+from .health import peak_force, planner_status
 from .model_check import resolve_model_path, validate_model
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
 
@@ -75,6 +78,9 @@ class PlannerNode(NamedRefusals, Node):
         self.create_subscription(PoseStamped, topics.POSE, self.on_pose,
                                  qos(topics.POSE, subscriber=True))
         self.add_on_set_parameters_callback(self.on_set_parameters)
+        self.refusal: str | None = None  # the last model swap's refusal, until one is accepted
+        self.refusals = 0
+        publish_diagnostics(self, self.diagnostics)
         self.waiting_since = time.monotonic()
         self.announcer = self.create_timer(0.05, self.announce,
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -108,6 +114,11 @@ class PlannerNode(NamedRefusals, Node):
         """The active model on ``/peel/model_version`` and, with its identity, ``/peel/model_info``."""
         self.pub_version.publish(Int64(data=self.version))
         self.pub_info.publish(String(data=self.ledger.latest.to_json()))
+
+    def diagnostics(self) -> list[Status]:
+        """The planner's health (:func:`~peel_planner_node.health.planner_status`), 1 Hz."""
+        return [planner_status(self.loop.latency, self.cfg, self.ledger.latest, self.refusal,
+                               self.refusals, peak_force(self.loop.rows))]
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, **parts: float) -> None:
@@ -149,6 +160,8 @@ class PlannerNode(NamedRefusals, Node):
             checked = self.check_model(str(model[-1].value)) if model else None
         except PeelError as exc:
             self.get_logger().warn(str(exc))
+            if model:
+                self.refusal, self.refusals = str(exc), self.refusals + 1
             return SetParametersResult(successful=False, reason=str(exc))
         if cfg is not None:  # from the next task on
             self.values.update(others)
@@ -176,6 +189,7 @@ class PlannerNode(NamedRefusals, Node):
         """Plan with ``pred`` from the next cycle on; publish its version and identity."""
         self.loop.set_dynamics(learned_dynamics(pred, self.cfg.dynamics))
         rec = self.ledger.accept(path, identity)
+        self.refusal = None
         self.publish_version()
         origin = f"{rec.producer}'s update after task {rec.task}" if rec.producer else "outside"
         self.get_logger().info(f"model swap: now v{rec.version} ({path.name}, {origin})")

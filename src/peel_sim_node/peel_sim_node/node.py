@@ -30,8 +30,10 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray, String
 
 from peel_msgs_py import codec, topics
+from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import SWAPPED, ModelRecord, UpdateReport, UpdateWait
+from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
@@ -40,6 +42,7 @@ from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
 
 from .config import SimConfig
 from .effects import load_effects
+from .health import sim_status
 from .lockstep import Sample, TaskSequence
 from .parameters import LIBRARY_SPECS, NODE_NAME, SPECS
 
@@ -86,6 +89,8 @@ class SimNode(NamedRefusals, Node):
         self.phase, self.since = "wait_graph", time.monotonic()
         self.sent = self.asked = self.since  # last publication; first sending of the waiting one
         self.done, self.exit_status = False, 0
+        self.last_outcome: str | None = None
+        publish_diagnostics(self, self.diagnostics)
         self.get_logger().info(f"{self.p['node.source']} ready: {self.p['node.tasks']} tasks, "
                                f"seed {self.p['node.seed']}")
 
@@ -126,6 +131,13 @@ class SimNode(NamedRefusals, Node):
             self.check_lockstep(waited)
         elif self.phase == "between":
             self.wait_model(waited)
+
+    def diagnostics(self) -> list[Status]:
+        """The lockstep's health (:func:`~peel_sim_node.health.sim_status`), 1 Hz."""
+        waiting = time.monotonic() - self.asked if self.phase == "running" else None
+        return [sim_status(self.p["node.source"], self.phase, self.finished_tasks,
+                           self.p["node.tasks"], self.model_version, waiting,
+                           self.p["node.cmd_timeout_s"], self.last_outcome)]
 
     # -- phases ------------------------------------------------------------------------------
     def set_phase(self, phase: str) -> None:
@@ -175,6 +187,7 @@ class SimNode(NamedRefusals, Node):
                                 "model_versions": sorted(self.versions_seen)}, outcome)
         self.pub_traj.publish(trajectory_msg(traj))
         self.finished_tasks += 1
+        self.last_outcome = traj.outcome
         self.get_logger().info(f"task {self.finished_tasks}: {traj.outcome}, "
                                f"T_cpl={traj.t_cpl:.1f} s, model v{self.version_at_start}")
         self.set_phase("between")
