@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 from graph_helpers import SMALL_MAML, node_env
 
 from model_learner_node.health import LearnerHealth
@@ -241,6 +242,7 @@ def _swap(node: object, path: Path) -> tuple[bool, str]:
     return bool(res.successful), str(res.reason)
 
 
+@pytest.mark.process
 def test_every_node_reports_and_a_refused_model_turns_the_planner_to_warn(
         tmp_path: Path, ros_domain: str) -> None:
     from test_graph_run import initial_model
@@ -281,6 +283,7 @@ def test_every_node_reports_and_a_refused_model_turns_the_planner_to_warn(
     assert refused.value("model version") == "1"  # the last good model plans on
 
 
+@pytest.mark.process
 def test_a_stalled_controller_stream_turns_the_bridge_to_warn(tmp_path: Path, ros_domain: str) -> None:
     from nachi_rig import Rig, bridge_cmd
     from test_nachi_node import emulator
