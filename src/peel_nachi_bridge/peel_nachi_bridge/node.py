@@ -75,7 +75,8 @@ class NachiBridgeNode(NamedRefusals, Node):
         self.bridge = NachiBridge(self.cfg.link, self.cfg.safety, self).start()
         self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"bridge to the controller at {self.cfg.link.host}:"
-                               f"{self.cfg.link.port} ({p.PROTOCOL} {p.VERSION})")
+                               f"{self.cfg.link.port} ({p.PROTOCOL} {p.VERSION}), commands "
+                               f"limited to {self.bridge.limits.describe()}")
 
     # -- ROS callbacks ------------------------------------------------------------------------
     def on_cmd_vel(self, msg: TwistStamped) -> None:
@@ -156,7 +157,8 @@ class NachiBridgeNode(NamedRefusals, Node):
             traj.meta.update({
                 "task_index": result.index, "t0_ros_s": result.index * self.cfg.node.task_slot_s,
                 "model_version": self.version_at_start.get(result.index),
-                "model_versions": sorted(self.versions_seen)})
+                "model_versions": sorted(self.versions_seen),
+                "cmd_limits_mmps": [self.bridge.limits.u_min_mmps, self.bridge.limits.u_max_mmps]})
             self.pub_traj.publish(trajectory_msg(traj))
             self.get_logger().info(f"task {result.index + 1}: {result.outcome} ({result.reason}), "
                                    f"T_cpl={traj.t_cpl:.1f} s, model "
