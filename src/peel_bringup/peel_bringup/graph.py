@@ -451,14 +451,16 @@ class Watch:
         return bool(fatal)
 
     def finished(self, mon: Any) -> bool:
-        """All tasks reported and the outcome of the learner's last update in (by its
-        identity: :class:`~peel_msgs_py.modelinfo.UpdateWait`), or given up on."""
+        """All tasks reported and the learner's own report on its last update in
+        (:meth:`~peel_msgs_py.modelinfo.UpdateWait.reported`; the planner's record of the swap
+        comes before it, and a learner stopped then could not say what became of it), or given
+        up on."""
         if len(self.results) < self.run.tasks:
             return False
         if self.finished_at is None:
             self.finished_at = time.monotonic()
         learner_alive = "model_learner_node" not in self.dead
-        arrived = mon.updates.outcome(self.run.tasks) is not None
+        arrived = mon.updates.reported(self.run.tasks) is not None
         wait_s = self.run.gp["graph.final_model_wait_s"]
         if learner_alive and not arrived and time.monotonic() - self.finished_at < wait_s:
             return False
