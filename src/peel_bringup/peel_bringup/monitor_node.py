@@ -22,6 +22,10 @@ from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.wire import DropLog, trajectory_nonfinite
 
 NODE_NAME = "peel_graph"
+#: The names of peel's nodes (launcher, bridges, planner, learner, recorder): one of them on the
+#: domain, besides this launcher, is another peel graph.
+PEEL_NODES = (NODE_NAME, "peel_sim_node", "peel_nachi_bridge", "peel_planner_node",
+              "model_learner_node", "peel_recorder")
 
 
 class GraphMonitor(Node):
@@ -44,6 +48,18 @@ class GraphMonitor(Node):
                                  topics.qos_profile(topics.MODEL_INFO, subscriber=True))
         self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
                                  topics.qos_profile(topics.MODEL_UPDATE, subscriber=True))
+
+    def peers(self) -> list[str]:
+        """What of another peel graph discovery shows now: nodes of a peel name (this launcher
+        excepted) and publishers of a ``/peel`` topic."""
+        names = [f"{ns.rstrip('/')}/{n}" for n, ns in self.get_node_names_and_namespaces()
+                 if n in PEEL_NODES]
+        own = self.get_fully_qualified_name()
+        if own in names:
+            names.remove(own)
+        pubs = [f"a publisher of {t}" for t, _ in self.get_topic_names_and_types()
+                if t.startswith("/peel/") and self.count_publishers(t) > 0]
+        return sorted(names) + pubs
 
     def drop(self, topic: str, name: str, why: str) -> None:
         """Count a refused message; warn when :class:`DropLog` says a line is due."""
