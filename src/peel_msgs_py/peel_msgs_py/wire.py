@@ -2,10 +2,10 @@
 
 Every message a node takes from a topic is checked where it enters: a command, a wrench, a
 state sample, a trajectory or a model report holding a non-finite or out-of-limit value is
-dropped (or, for a speed command, clamped into the bridge's limits) and counted per topic and
-field by a :class:`DropLog`, which says when a log line is due: the first drop of a
-(topic, field) at once, further ones at most every :data:`LOG_EVERY_S` seconds, each line with
-the count so far. Nothing a peer publishes can end a node.
+dropped (or, for a speed command, clamped into the bridge's limits) and counted per topic,
+field and action (dropped, clamped) by a :class:`DropLog`, which says when a log line is due:
+the first of a kind at once, further ones at most every :data:`LOG_EVERY_S` seconds, each line
+with the count so far. Nothing a peer publishes can end a node.
 
 A bridge executes a speed only inside ``[u_min, u_max]`` (:class:`SpeedLimits`); the default is
 the Nachi controller's accepted ``V`` range, 0 to 20 mm/s (docs/nachi_protocol.md).
@@ -52,20 +52,21 @@ class DropLog:
 
     every_s: float = LOG_EVERY_S
     clock: Callable[[], float] = time.monotonic
-    counts: dict[tuple[str, str], int] = field(default_factory=dict)
-    _last: dict[tuple[str, str], float] = field(default_factory=dict)
+    counts: dict[tuple[str, str, str], int] = field(default_factory=dict)
+    _last: dict[tuple[str, str, str], float] = field(default_factory=dict)
 
     def drop(self, topic: str, name: str, why: str, action: str = "dropped") -> str | None:
-        """Count one message of ``topic`` refused for its field ``name``; the log line when one
-        is due (first time, then at most every ``every_s``), else None."""
-        key = (topic, name)
+        """Count one message of ``topic`` refused (or clamped: ``action``) for its field
+        ``name``; the log line when one is due (first time, then at most every ``every_s`` per
+        topic, field and action), else None."""
+        key = (topic, name, action)
         self.counts[key] = self.counts.get(key, 0) + 1
         now = self.clock()
         if now - self._last.get(key, -math.inf) < self.every_s:
             return None
         self._last[key] = now
         return (f"{action} a {topic} message: {name} {why} "
-                f"({self.counts[key]} so far on {topic} for {name})")
+                f"({self.counts[key]} {action} so far on {topic} for {name})")
 
     @property
     def total(self) -> int:
