@@ -29,8 +29,8 @@ graphs on one domain would swap each other's models and mix their bags.
 
 It stops cleanly after K tasks (after the learner's own report on its last update, or
 ``graph.final_model_wait_s``) or on Ctrl-C: SIGINT to every node, the recorder last so the bag
-holds that report and is closed and readable. Exit status (:data:`EXIT_STATUS`, the first
-failure decides): 0 all well; 1 a node died (named; ``--keep-going``: a dead learner or
+holds that report and is closed and readable. Exit status (:data:`EXIT_STATUS`; the first that
+applies in the order 130, 2, 1, 4, 3): 0 all well; 1 a node died (named; ``--keep-going``: a dead learner or
 recorder is reported but the tasks go on, the planner keeping its last good model); 2 bad input
 (here or in a node), nothing started; 3 every node ran to the end but at least one update of
 the learner failed or was refused (the planner kept its model); 4 the recording failed (the
@@ -417,7 +417,8 @@ class Watch:
     children: list[Child]
     results: list[dict[str, Any]] = field(default_factory=list)
     dead: list[str] = field(default_factory=list)
-    status: int = 0
+    interrupted: bool = False
+    bad_input: bool = False
     finished_at: float | None = None
     shown_version: int | None = None
     failed_updates: list[int] = field(default_factory=list)
@@ -459,23 +460,33 @@ class Watch:
                 child.reported = True
                 self.dead.append(child.name)
                 if code == BAD_INPUT:
-                    self.status = BAD_INPUT
+                    self.bad_input = True
                 print(f"peel graph: error: node {child.name} (pid {child.pid}) died with "
                       f"exit status {code}; log {child.log}\n{child.tail()}",
                       file=sys.stderr, flush=True)
                 if child.name == RECORDER:
                     self.recording_failed()
         fatal = [d for d in self.dead if not (keep_going and d in OPTIONAL)]
-        if fatal:
-            self.status = self.status or 1
         return bool(fatal)
 
     def recording_failed(self) -> None:
-        """The recorder died or could not write: exit status 4 unless a failure came first."""
-        if self.status in (0, UPDATE_FAILED):
-            self.status = RECORDING_FAILED
+        """The recorder died or could not write (exit status 4, :meth:`status`)."""
         if RECORDER not in self.dead:
             self.dead.append(RECORDER)
+
+    @property
+    def status(self) -> int:
+        """The exit status: the first that applies of 130 (Ctrl-C), 2 (bad input), 1 (a node
+        other than the recorder died), 4 (the recording failed), 3 (an update failed), 0."""
+        if self.interrupted:
+            return 130
+        if self.bad_input:
+            return BAD_INPUT
+        if any(d != RECORDER for d in self.dead):
+            return 1
+        if RECORDER in self.dead:
+            return RECORDING_FAILED
+        return UPDATE_FAILED if self.failed_updates else 0
 
     def check_recorder(self, code: int | None) -> None:
         """The recorder's exit status at the stop: non-zero (e.g. a write that failed while it
@@ -517,7 +528,7 @@ def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
         w.report_tasks(mon)
         if stop.signum is not None:
             print("peel graph: interrupted; stopping the nodes", file=sys.stderr, flush=True)
-            w.status = 130
+            w.interrupted = True
             return
         if w.check_children(keep_going) or w.finished(mon):
             return
@@ -583,10 +594,6 @@ def run_graph(args: argparse.Namespace) -> int:
             child.start(env, args.verbose)
             print(f"peel graph: started {child.name} (pid {child.pid})", flush=True)
         watch(w, mon, stop, args.keep_going)
-        if w.dead:
-            w.status = w.status or 1
-        if w.failed_updates:
-            w.status = w.status or UPDATE_FAILED
     finally:
         stop.restore()
         w.check_recorder(tear_down(children, run.gp["graph.stop_timeout_s"]))
