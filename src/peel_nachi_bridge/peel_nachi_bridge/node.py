@@ -30,6 +30,7 @@ from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
+from peel_msgs_py.wire import DropLog
 
 from . import protocol as p
 from .bridge import NachiBridge
@@ -66,6 +67,7 @@ class NachiBridgeNode(NamedRefusals, Node):
         self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
                                  to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
         self.updates = UpdateWait(self.cfg.node.learner_node)
+        self.drops = DropLog()
         self.model_version: int | None = None
         self.versions_seen: set[int] = set()
         self.version_at_start: dict[int, int | None] = {}
@@ -83,11 +85,15 @@ class NachiBridgeNode(NamedRefusals, Node):
         try:
             index = codec.task_from_frame_id(msg.header.frame_id)
         except PeelError as exc:
-            self.get_logger().warn(f"ignoring a command: {exc}")
+            self.log_drop(self.drops.drop(topics.CMD_VEL, "header.frame_id", f"is bad: {exc}"))
             return
         self.bridge.command(float(mps_to_mmps(msg.twist.linear.x)), index)
 
     def on_model_version(self, msg: Int64) -> None:
+        if msg.data < 0:
+            self.log_drop(self.drops.drop(topics.MODEL_VERSION, "data",
+                                          f"is negative ({msg.data})"))
+            return
         self.model_version = int(msg.data)
         self.versions_seen.add(int(msg.data))
 
@@ -95,13 +101,19 @@ class NachiBridgeNode(NamedRefusals, Node):
         try:
             self.updates.add_record(ModelRecord.from_json(msg.data))
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_INFO} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_INFO, "data",
+                                          f"is not a model record: {exc}"))
 
     def on_model_update(self, msg: String) -> None:
         try:
             self.updates.add_report(UpdateReport.from_json(msg.data))
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_UPDATE} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_UPDATE, "data",
+                                          f"is not an update report: {exc}"))
+
+    def log_drop(self, line: str | None) -> None:
+        if line is not None:
+            self.get_logger().warning(line)
 
     def on_tick(self) -> None:
         while not self.ended.empty():

@@ -130,7 +130,9 @@ class PlannerNode(NamedRefusals, Node):
         try:
             task = codec.task_from_frame_id(msg.header.frame_id)
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a state message: {exc}")
+            line = self.drops.drop(topic, "header.frame_id", f"is bad: {exc}")
+            if line is not None:
+                self.get_logger().warn(line)
             return
         sample = self.parts.add(stamp_ns(msg.header.stamp), task, **parts)
         if sample is not None:

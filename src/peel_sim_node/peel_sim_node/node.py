@@ -135,7 +135,8 @@ class SimNode(NamedRefusals, Node):
         try:
             rec = ModelRecord.from_json(msg.data)
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_INFO} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_INFO, "data", f"is not a model record: "
+                                                                     f"{exc}"))
             return
         self.updates.add_record(rec)
         self.model_version = rec.version
@@ -146,7 +147,8 @@ class SimNode(NamedRefusals, Node):
         try:
             self.updates.add_report(UpdateReport.from_json(msg.data))
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_UPDATE} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_UPDATE, "data",
+                                          f"is not an update report: {exc}"))
 
     def on_tick(self) -> None:
         waited = time.monotonic() - self.since
