@@ -8,7 +8,6 @@ produces, the bridge's counters, and the emulator's own record of what it receiv
 from __future__ import annotations
 
 import dataclasses
-
 import threading
 import time
 from collections.abc import Callable
