@@ -5,7 +5,8 @@
   the only answers), a NaN wrench, a trajectory holding NaN: each dropped or clamped where it
   enters, logged with topic and field, and the run completes with its summary; the bridge
   executed 20 mm/s at most; the learner's report on the last update is in the bag;
-* a second ``peel graph`` on the domain of a running one is refused before it starts anything
+* a second ``peel graph`` on the domain of a running one (its planner held with SIGSTOP from
+  its start, so that it runs however long the second takes to look) is refused before it starts anything
   (exit 5, one line naming the domain), and the first run's bag holds its own data only;
 * a second node of one name on a domain is warned about by both;
 * a recording onto a full disk (the bag file's writes fail with ENOSPC past 12 000 bytes:
@@ -219,16 +220,25 @@ def test_a_second_graph_on_the_domain_is_refused_and_nothing_mixes(
     bag = a_dir / "bag"
     a = subprocess.Popen(graph_cmd(a_dir, "--record", str(bag), tasks=2), env=node_env(),
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    planner = None
     try:
         lines = Lines(a)
-        lines.wait_for(r"peel graph: planner model v0 active", 300)  # A's nodes are up
+        planner = int(lines.wait_for(r"started peel_planner_node \(pid (\d+)\)", 120).group(1))
+        # A's planner held before it can announce a model: A's simulator waits for it
+        # (node.wait_planner_s), so A runs, its launcher and other nodes on the domain, however
+        # long B takes to look
+        os.kill(planner, signal.SIGSTOP)
         b_cmd = graph_cmd(b_dir, tasks=2)
         override = b_dir / "override.yaml"  # B looks long enough for any discovery delay
-        override.write_text(override.read_text().replace(
-            "final_model_wait_s: 120.0", "final_model_wait_s: 120.0\n      alone_wait_s: 300.0"))
+        override.write_text(override.read_text().replace("alone_wait_s: 0.5",
+                                                         "alone_wait_s: 300.0"))
         b = subprocess.run(b_cmd, env=node_env(), capture_output=True, text=True, timeout=400)
+        os.kill(planner, signal.SIGCONT)
         rc = a.wait(timeout=400)
     finally:
+        if planner is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(planner, signal.SIGCONT)
         if a.poll() is None:
             a.kill()
     out = lines.join()
