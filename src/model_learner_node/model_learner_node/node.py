@@ -96,6 +96,8 @@ class LearnerNode(NamedRefusals, Node):
             try:
                 if report.status == OFFERED:
                     report = self.offer(report)
+                if report.status == OFFERED:
+                    return  # stopped before the planner answered: nothing to report
                 self.pub_update.publish(String(data=report.to_json()))
             except Exception as exc:  # rclpy refuses calls once the node is being destroyed
                 if self.closing.is_set():
