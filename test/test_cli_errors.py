@@ -49,6 +49,8 @@ def env(tmp_path_factory) -> dict[str, Path]:
     (root / "latin1.yaml").write_bytes("peel_sim_node:\n  ros__parameters: {}\n# \xb5m\n"
                                        .encode("latin-1"))
     (root / "plain.txt").write_text("not a folder")
+    (root / "empty.yaml").write_text("# a parameter file that sets nothing\n")
+    (root / "params_dir").mkdir()
     (root / "foreign").mkdir()
     (root / "foreign" / "thesis.tex").write_text("someone else's work")
     pred = load_checkpoint(shipped_checkpoint())
@@ -59,6 +61,7 @@ def env(tmp_path_factory) -> dict[str, Path]:
     save_checkpoint(root / "huge.safetensors", pred)
     return {"root": root, "ds": ds, "bad": bad, "latin1": root / "latin1.yaml",
             "file": root / "plain.txt", "foreign": root / "foreign",
+            "empty": root / "empty.yaml", "params_dir": root / "params_dir",
             "model": root / "model.safetensors", "huge": root / "huge.safetensors"}
 
 
@@ -191,6 +194,15 @@ PROCESSES = {
                      "{tmp}/run"], "peel demo", "not valid UTF-8"),
     "graph-foreign": ([*PEEL, "graph", "--tasks", "1", "--out", "{foreign}"], "peel graph",
                       "not empty"),
+    # a parameter file that sets nothing, and a folder where the file should be
+    "graph-params-empty": ([*PEEL, "graph", "--tasks", "1", "--params", "{empty}", "--out",
+                            "{tmp}/run"], "peel graph", "is empty: it names no node"),
+    "demo-params-empty": ([*PEEL, "demo", "--tasks", "1", "--params", "{empty}", "--out",
+                           "{tmp}/run"], "peel demo", "is empty: it names no node"),
+    "graph-params-dir": ([*PEEL, "graph", "--tasks", "1", "--params", "{params_dir}", "--out",
+                          "{tmp}/run"], "peel graph", "is a directory, not a parameter file"),
+    "demo-params-dir": ([*PEEL, "demo", "--tasks", "1", "--params", "{params_dir}", "--out",
+                         "{tmp}/run"], "peel demo", "is a directory"),
     "record-duration-inf": ([*PEEL, "record", "--out", "{tmp}/bag", "--duration", "inf"],
                             "peel record", "--duration"),
     "evaluate-non-finite": (["-m", "model_learner_node.evaluate", "{huge}", "{ds}"],

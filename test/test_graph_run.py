@@ -62,6 +62,7 @@ peel_bringup:
   ros__parameters:
     graph:
       final_model_wait_s: 120.0
+      alone_wait_s: 0.5
 """
 
 

@@ -7,6 +7,7 @@ produces, the bridge's counters, and the emulator's own record of what it receiv
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -68,15 +69,17 @@ class Driver:
 
 def run(faults: tuple[str, ...] = (), *, tasks: int = 1, speed: Speed = lambda k, t: 4.0,
         emu_speed: float = 2.0, q_ter_mm: float = 6.0, started: Callable[..., None] | None = None,
+        safety: dict[str, float] | None = None,
         **overrides: object) -> tuple[Driver, NachiBridge, ControllerEmulator]:
-    """Run ``tasks`` started tasks through the bridge against a fresh emulator."""
+    """Run ``tasks`` started tasks through the bridge against a fresh emulator (``safety``:
+    fields of the bridge's :class:`SafetyParams` replaced beyond what its parameters allow)."""
     robot = Robot(source="sim", seed=3, cfg=load_sim_config({"task.q_ter_mm": q_ter_mm}))
     opts = EmulatorOptions(port=0, speed=emu_speed, seed=3,
                            faults=tuple(parse_fault(f) for f in faults))
     emu = ControllerEmulator(opts, robot=robot, log=lambda text: None).start()
     cfg = load_config({"link.port": emu.port, "link.hello_timeout_s": 1.0, **overrides})
     driver = Driver(speed)
-    bridge = NachiBridge(cfg.link, cfg.safety, driver)
+    bridge = NachiBridge(cfg.link, dataclasses.replace(cfg.safety, **(safety or {})), driver)
     driver.bridge = bridge
     bridge.start()
     try:
@@ -217,8 +220,27 @@ def test_controller_that_never_says_hello_makes_the_bridge_give_up() -> None:
     assert driver.results == [] and bridge.busy  # the task never started
 
 
+def test_a_speed_outside_the_limits_is_clamped_before_it_goes_out() -> None:
+    """-3 and 1e9 mm/s from the planner (or anyone): the controller sees 0 and 20 mm/s."""
+    def speed(k: int, t: float) -> float:
+        return -3.0 if 0.4 < t < 0.6 else 1e9 if 0.9 < t < 1.1 else 4.0
+    driver, bridge, emu = run(speed=speed)
+    assert outcomes(driver) == [("done", "reached")]
+    sent = [e.data["u"] for e in emu.of_kind("v")]
+    assert 20.0 in sent and 0.0 in sent and max(sent) == 20.0 and min(sent) == 0.0
+    assert not emu.of_kind("refused_v") and bridge.stats.refused_v == 0
+    assert bridge.stats.clamped_commands >= 2
+    clamped = [text for _, text in driver.logs if text.startswith("clamped a /peel/cmd_vel")]
+    # one line for both: the second clamp of the field within LOG_EVERY_S is only counted
+    assert len(clamped) == 1 and "= -3 mm/s is outside 0-20 mm/s; forwarding 0 mm/s" in clamped[0]
+    traj = driver.results[0].trajectory
+    assert traj is not None and max(traj.u) == 20.0
+
+
 def test_refused_v_is_recorded_and_the_task_goes_on() -> None:
-    driver, bridge, emu = run(speed=lambda k, t: 25.0 if 0.4 < t < 0.6 else 4.0)
+    """The controller's own refusal (ERR 21), reached only by a bridge with wider limits."""
+    driver, bridge, emu = run(speed=lambda k, t: 25.0 if 0.4 < t < 0.6 else 4.0,
+                              safety={"u_max_mmps": 30.0})
     assert outcomes(driver) == [("done", "reached")]
     traj = driver.results[0].trajectory
     assert traj is not None and len(traj.meta["refused_v"]) == 1

@@ -37,7 +37,8 @@ SCENARIO = (
     "garbage:t=0.2,n=2,task=1", "oversize:t=0.4,task=1", "nan:t=0.6,task=1", "inf:t=0.8,task=1",
     "spike:t=0.5,f=22,task=2",
     "stall:t=0.6,s=3,task=3",
-    # task 4: the commander sends 25 mm/s once (refused); task 5: it falls silent (watchdog)
+    # task 4: the commander sends 25 mm/s once (the bridge clamps it to the controller's 20);
+    # task 5: it falls silent (watchdog)
     "garbage:t=0.5,n=3,task=6",
 )
 EXPECTED = [
@@ -88,7 +89,11 @@ def test_every_fault_has_its_outcome_in_a_readable_bag(tmp_path: Path, ros_domai
     assert spike.fx[-1] == pytest.approx(22.0) and spike.t[-1] == pytest.approx(0.5)
     assert spike.meta["stop_delay_s"] > 0
     assert emu.of_kind("stop")[0].data["sample_t"] == pytest.approx(0.5)  # the same sample
-    assert trajs[4].meta["refused_v"][0].startswith("21 V out of range")
+    # 25 mm/s went out as 20 mm/s: the controller had nothing to refuse
+    assert trajs[4].meta.get("refused_v", []) == [] and max(trajs[4].u) == 20.0
+    assert all(t.meta["cmd_limits_mmps"] == [0.0, 20.0] for t in trajs)
+    assert "clamped a /peel/cmd_vel message: twist.linear.x = 25 mm/s is outside 0-20 mm/s; " \
+           "forwarding 20 mm/s" in log
     assert trajs[5].meta["alarm"] == "10 watchdog"
     assert trajs[6].meta["bad_lines"]["malformed"] == 3
 

@@ -37,6 +37,7 @@ from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
+from peel_msgs_py.wire import DropLog, trajectory_nonfinite
 
 from .health import LearnerHealth
 from .online import OnlineLearner, task_number
@@ -64,6 +65,7 @@ class LearnerNode(NamedRefusals, Node):
                                                 topics.qos_profile(topics.MODEL_UPDATE))
         self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
                                  topics.qos_profile(topics.TRAJECTORY, subscriber=True))
+        self.drops = DropLog()
         self.closing = threading.Event()
         self.health = LearnerHealth()
         publish_diagnostics(self, self.diagnostics)
@@ -72,10 +74,23 @@ class LearnerNode(NamedRefusals, Node):
         self.get_logger().info(f"learner ready: {self.learner.describe()}")
 
     def on_trajectory(self, msg: Float64MultiArray) -> None:
+        """A finished task, queued for the worker; one that does not decode or holds
+        non-finite values is dropped here (counted, logged at most every few seconds)."""
         try:
-            self.queue.put(codec.trajectory_from_msg(msg))
+            traj = codec.trajectory_from_msg(msg)
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.TRAJECTORY} message: {exc}")
+            self.log_drop(self.drops.drop(topics.TRAJECTORY, "layout", f"does not decode: {exc}"))
+            return
+        bad = trajectory_nonfinite(traj)
+        if bad is not None:
+            self.log_drop(self.drops.drop(topics.TRAJECTORY, f"'{bad}'",
+                                          "holds non-finite values"))
+            return
+        self.queue.put(traj)
+
+    def log_drop(self, line: str | None) -> None:
+        if line is not None:
+            self.get_logger().warn(line)
 
     def work(self) -> None:
         """Worker thread: one update per finished task, the swap request, the report."""
@@ -88,6 +103,8 @@ class LearnerNode(NamedRefusals, Node):
             try:
                 if report.status == OFFERED:
                     report = self.offer(report)
+                if report.status == OFFERED:
+                    return  # stopped before the planner answered: nothing to report
                 self.pub_update.publish(String(data=report.to_json()))
                 self.health.record(report, update_s)
             except Exception as exc:  # rclpy refuses calls once the node is being destroyed
@@ -114,6 +131,8 @@ class LearnerNode(NamedRefusals, Node):
         """Ask the planner to swap the update in; ``swapped`` or ``refused`` with its reason."""
         name = Path(str(report.path)).name
         ok, reason = self.request_swap(Path(str(report.path)))
+        if self.closing.is_set():
+            return report  # stopped before the planner answered: nothing to report
         if ok:
             self.get_logger().info(f"task {report.task}: the planner swapped in {name}")
             return replace(report, status=SWAPPED)
@@ -131,7 +150,10 @@ class LearnerNode(NamedRefusals, Node):
         future.add_done_callback(lambda _f: done.set())
         deadline = time.monotonic() + self.timeout_s
         while not done.wait(0.1):  # in slices, so that a shutdown does not wait for it
-            if self.closing.is_set() or time.monotonic() > deadline:
+            if self.closing.is_set():
+                self.client.remove_pending_request(future)
+                return False, "the learner was stopped before the planner answered"
+            if time.monotonic() > deadline:
                 self.client.remove_pending_request(future)
                 return False, f"no answer from the planner within {self.timeout_s:g} s"
         resp: Any = future.result()

@@ -167,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     gargs.command = "peel demo"
     status = graph.run_graph(gargs)
     wall = time.monotonic() - t0
+    if status == graph.RECORDING_FAILED:
+        return status  # the bag is cut short: the graph printed the repair command
     if not bag.exists():
         print("peel demo: error: no bag was recorded", file=sys.stderr)
         return status or 1

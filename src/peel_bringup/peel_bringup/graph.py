@@ -22,14 +22,22 @@ prints one line per finished task: outcome, T_cpl, J (Eq. 3,
 line per update of the learner: swapped in (as which version), refused, failed or skipped, as
 soon as it is known.
 
-It stops cleanly after K tasks (after the outcome of the learner's last update, known by its
-identity, or ``graph.final_model_wait_s``) or on Ctrl-C: SIGINT to every node, the recorder last
-so the bag is closed and readable. Exit status (:data:`EXIT_STATUS`): 0 all well; 1 a node died
-(named; ``--keep-going``: a dead learner or recorder is reported but the tasks go on, the
-planner keeping its last good model); 2 bad input (here or in a node); 3 every node ran to the
-end but at least one update of the learner failed or was refused (the planner kept its model);
-130 Ctrl-C. Node output goes to ``OUT/logs/<node>.log``; ``OUT/summary.json`` holds the
-per-task results, each with its update.
+Before anything starts, the launcher looks ``graph.alone_wait_s`` of DDS discovery long for
+another peel graph on its ROS domain (a node of a peel name, a publisher of a ``/peel`` topic)
+and refuses to join one (exit 5, one line naming the domain and how to choose another): two
+graphs on one domain would swap each other's models and mix their bags.
+
+It stops cleanly after K tasks (after the learner's own report on its last update, or
+``graph.final_model_wait_s``) or on Ctrl-C: SIGINT to every node, the recorder last so the bag
+holds that report and is closed and readable. Exit status (:data:`EXIT_STATUS`; the first that
+applies in the order 130, 2, 1, 4, 3): 0 all well; 1 a node died (named; ``--keep-going``: a dead learner or
+recorder is reported but the tasks go on, the planner keeping its last good model); 2 bad input
+(here or in a node), nothing started; 3 every node ran to the end but at least one update of
+the learner failed or was refused (the planner kept its model); 4 the recording failed (the
+recorder died or could not write, e.g. a full disk: the bag is cut short, the repair command is
+printed); 5 another peel graph runs on the ROS domain, nothing started; 130 Ctrl-C. Node output
+goes to ``OUT/logs/<node>.log``; ``OUT/summary.json`` holds the per-task results, each with its
+update.
 """
 
 from __future__ import annotations
@@ -49,8 +57,9 @@ from typing import Any
 
 from peel_msgs_py import discovery, held_signals
 from peel_msgs_py.atomic import atomic_write_text
+from peel_msgs_py.bag import repair_hint
 from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
-from peel_msgs_py.errors import PeelError
+from peel_msgs_py.errors import DomainTaken, PeelError
 from peel_msgs_py.outputs import OutputDir, check_location, check_new_path
 from peel_msgs_py.params import config_dir, default_param_file, load_node_params, validate
 
@@ -67,9 +76,15 @@ OPTIONAL = ("model_learner_node", RECORDER)
 BAD_INPUT = 2
 #: Exit status of a graph whose nodes all ran but where an update of the learner failed.
 UPDATE_FAILED = 3
+#: Exit status of a graph whose recorder died or could not write (the bag needs a repair).
+RECORDING_FAILED = 4
+#: Exit status of a graph refused because another peel graph runs on its ROS domain.
+DOMAIN_TAKEN = DomainTaken.exit_status
 #: Every exit status of ``peel graph`` (module docstring; docs/graph.md).
 EXIT_STATUS = {0: "ok", 1: "a node died", BAD_INPUT: "bad input",
-               UPDATE_FAILED: "a model update failed", 130: "interrupted"}
+               UPDATE_FAILED: "a model update failed",
+               RECORDING_FAILED: "the recording failed (bag cut short)",
+               DOMAIN_TAKEN: "another peel graph on the ROS domain", 130: "interrupted"}
 #: The learner whose updates the launcher (and the simulator: its ``node.learner_node``) waits
 #: for, by its identity on ``/peel/model_info`` (the learner's fully qualified node name).
 LEARNER = "/model_learner_node"
@@ -312,6 +327,8 @@ class Run:
     link: dict[str, Any] = field(default_factory=dict)
     #: user effects (``module:function``) for the simulator node's ``node.effects``
     effects: tuple[str, ...] = ()
+    #: the run folder, checked; created by :meth:`OutputDir.create` once the graph may start
+    out: OutputDir | None = None
 
     def settings(self) -> dict[str, dict[str, Any]]:
         """The nodes to start and their ``-p`` settings (:func:`node_settings`)."""
@@ -322,6 +339,8 @@ class Run:
 def resolve(args: argparse.Namespace) -> Run:
     """Arguments + config, every node's parameters checked; PeelError on bad input."""
     override = args.params
+    if override is not None and Path(override).is_dir():
+        raise PeelError(f"--params: {override} is a directory, not a parameter file")
     if override is not None and not Path(override).is_file():
         raise PeelError(f"--params: no such file {override}")
     gp = graph_params(override)
@@ -344,10 +363,9 @@ def resolve(args: argparse.Namespace) -> Run:
     if link and plant != "nachi":
         raise PeelError("--nachi-host / --nachi-port need --plant nachi")
     effects = check_effects(args.effect, plant)
-    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects)
+    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects, out)
     check_node_params(override, run.settings())
-    out.create()  # every check above passed: nothing is written before this
-    return run
+    return run  # nothing is written yet: run_graph creates the folder once the domain is free
 
 
 def check_effects(specs: Sequence[str], plant: str) -> tuple[str, ...]:
@@ -399,7 +417,8 @@ class Watch:
     children: list[Child]
     results: list[dict[str, Any]] = field(default_factory=list)
     dead: list[str] = field(default_factory=list)
-    status: int = 0
+    interrupted: bool = False
+    bad_input: bool = False
     finished_at: float | None = None
     shown_version: int | None = None
     failed_updates: list[int] = field(default_factory=list)
@@ -441,24 +460,56 @@ class Watch:
                 child.reported = True
                 self.dead.append(child.name)
                 if code == BAD_INPUT:
-                    self.status = BAD_INPUT
+                    self.bad_input = True
                 print(f"peel graph: error: node {child.name} (pid {child.pid}) died with "
                       f"exit status {code}; log {child.log}\n{child.tail()}",
                       file=sys.stderr, flush=True)
+                if child.name == RECORDER:
+                    self.recording_failed()
         fatal = [d for d in self.dead if not (keep_going and d in OPTIONAL)]
-        if fatal:
-            self.status = self.status or 1
         return bool(fatal)
 
+    def recording_failed(self) -> None:
+        """The recorder died or could not write (exit status 4, :meth:`status`)."""
+        if RECORDER not in self.dead:
+            self.dead.append(RECORDER)
+
+    @property
+    def status(self) -> int:
+        """The exit status: the first that applies of 130 (Ctrl-C), 2 (bad input), 1 (a node
+        other than the recorder died), 4 (the recording failed), 3 (an update failed), 0."""
+        if self.interrupted:
+            return 130
+        if self.bad_input:
+            return BAD_INPUT
+        if any(d != RECORDER for d in self.dead):
+            return 1
+        if RECORDER in self.dead:
+            return RECORDING_FAILED
+        return UPDATE_FAILED if self.failed_updates else 0
+
+    def check_recorder(self, code: int | None) -> None:
+        """The recorder's exit status at the stop: non-zero (e.g. a write that failed while it
+        closed the bag) is a failed recording, named with the log."""
+        rec = next((c for c in self.children if c.name == RECORDER), None)
+        if rec is None or code in (0, None) or rec.reported:
+            return
+        rec.reported = True
+        print(f"peel graph: error: the recorder exited with status {code}; log {rec.log}\n"
+              f"{rec.tail(3)}", file=sys.stderr, flush=True)
+        self.recording_failed()
+
     def finished(self, mon: Any) -> bool:
-        """All tasks reported and the outcome of the learner's last update in (by its
-        identity: :class:`~peel_msgs_py.modelinfo.UpdateWait`), or given up on."""
+        """All tasks reported and the learner's own report on its last update in
+        (:meth:`~peel_msgs_py.modelinfo.UpdateWait.reported`; the planner's record of the swap
+        comes before it, and a learner stopped then could not say what became of it), or given
+        up on."""
         if len(self.results) < self.run.tasks:
             return False
         if self.finished_at is None:
             self.finished_at = time.monotonic()
         learner_alive = "model_learner_node" not in self.dead
-        arrived = mon.updates.outcome(self.run.tasks) is not None
+        arrived = mon.updates.reported(self.run.tasks) is not None
         wait_s = self.run.gp["graph.final_model_wait_s"]
         if learner_alive and not arrived and time.monotonic() - self.finished_at < wait_s:
             return False
@@ -477,34 +528,49 @@ def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
         w.report_tasks(mon)
         if stop.signum is not None:
             print("peel graph: interrupted; stopping the nodes", file=sys.stderr, flush=True)
-            w.status = 130
+            w.interrupted = True
             return
         if w.check_children(keep_going) or w.finished(mon):
             return
 
 
-def tear_down(children: list[Child], timeout_s: float) -> None:
+def tear_down(children: list[Child], timeout_s: float) -> int | None:
     """One SIGINT per node (simulator or Nachi bridge, planner, learner), each waited for (then
-    SIGTERM, SIGKILL after the grace period); the recorder last, so the bag holds everything."""
+    SIGTERM, SIGKILL after the grace period); the recorder last, so the bag holds everything.
+    Returns the recorder's exit status (None without one)."""
     nodes = [c for c in children if c.name != RECORDER]
     for child in nodes:
         child.signal(signal.SIGINT)
         child.stopping = True
     for child in nodes:
         child.stop(timeout_s, signalled=True)
+    code = None
     for child in children:
         if child.name == RECORDER:
             time.sleep(0.5)  # let the last messages reach the recorder
             code = child.stop(timeout_s)
-            if code not in (0, None) and not child.reported:
-                print(f"peel graph: warning: the recorder exited with status {code}; "
-                      f"log {child.log}", file=sys.stderr)
+    return code
+
+
+def check_alone(mon: Any, wait_s: float) -> None:
+    """Look ``wait_s`` of discovery long for another peel graph on the ROS domain; raise
+    :class:`~peel_msgs_py.errors.DomainTaken` naming it as soon as one is seen."""
+    from .monitor_node import spin_once
+
+    deadline = time.monotonic() + wait_s
+    while not (found := mon.peers()) and time.monotonic() < deadline:
+        spin_once(mon, 0.1)
+    if found:
+        domain = os.environ.get(discovery.DOMAIN_VAR) or "0"
+        raise DomainTaken(
+            f"ROS domain {domain} already holds a peel graph ({', '.join(found[:4])}"
+            f"{', ...' if len(found) > 4 else ''}); stop it, or start this one on a domain of "
+            f"its own: ROS_DOMAIN_ID=<0-101> (docs/runtime.md)")
 
 
 def run_graph(args: argparse.Namespace) -> int:
     """Start, watch and stop the graph; returns the exit status."""
     run = resolve(args)
-    run.run_dir.mkdir(parents=True, exist_ok=True)
     children = children_of(run)
     env = child_env()
     discovery.confine()  # the launcher's own node too
@@ -512,6 +578,14 @@ def run_graph(args: argparse.Namespace) -> int:
     from .monitor_node import close_monitor, open_monitor
 
     mon = open_monitor(LEARNER)
+    try:
+        check_alone(mon, run.gp["graph.alone_wait_s"])
+    except DomainTaken:
+        close_monitor(mon)
+        raise
+    assert run.out is not None
+    run.out.create()  # every check passed: nothing is written before this
+    run.run_dir.mkdir(parents=True, exist_ok=True)
     stop = _Interrupt()
     stop.install()
     w = Watch(run, children)
@@ -520,13 +594,9 @@ def run_graph(args: argparse.Namespace) -> int:
             child.start(env, args.verbose)
             print(f"peel graph: started {child.name} (pid {child.pid})", flush=True)
         watch(w, mon, stop, args.keep_going)
-        if w.dead:
-            w.status = w.status or 1
-        if w.failed_updates:
-            w.status = w.status or UPDATE_FAILED
     finally:
         stop.restore()
-        tear_down(children, run.gp["graph.stop_timeout_s"])
+        w.check_recorder(tear_down(children, run.gp["graph.stop_timeout_s"]))
         close_monitor(mon)
     return write_summary(w, mon)
 
@@ -540,6 +610,7 @@ def write_summary(w: Watch, mon: Any) -> int:
         "bag": str(run.bag) if run.bag else None, "run_dir": str(run.run_dir),
         "model_versions": sorted(set(mon.versions)), "dead_nodes": w.dead,
         "failed_updates": w.failed_updates, "results": w.results, "status": w.status,
+        "bag_repair": repair_hint(run.bag) if run.bag and RECORDER in w.dead else None,
         "status_meaning": EXIT_STATUS.get(w.status, "?"),
     }
     atomic_write_text(run.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
@@ -549,6 +620,9 @@ def write_summary(w: Watch, mon: Any) -> int:
     if w.dead:
         print(f"peel graph: error: node(s) died: {', '.join(w.dead)}", file=sys.stderr,
               flush=True)
+    if summary["bag_repair"]:
+        print(f"peel graph: error: the recording failed; the bag {run.bag} is cut short: "
+              f"repair it with: {summary['bag_repair']}", file=sys.stderr, flush=True)
     if w.failed_updates:
         print(f"peel graph: error: the learner's update failed after task(s) "
               f"{', '.join(map(str, w.failed_updates))}; the planner kept its model "

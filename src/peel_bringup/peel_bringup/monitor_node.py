@@ -1,7 +1,9 @@
 """The launcher's own node (``peel_graph``): it listens to ``/peel/trajectory``,
 ``/peel/model_version``, ``/peel/model_info`` and ``/peel/model_update`` so that ``peel graph``
 can print a line per finished task and per update of the learner, and know which model versions
-the planner took (docs/graph.md)."""
+the planner took (docs/graph.md). A message that does not decode, or a trajectory holding
+non-finite values, is dropped with a counted, rate-limited warning
+(:class:`~peel_msgs_py.wire.DropLog`); nothing on the wire ends the launcher."""
 
 from __future__ import annotations
 
@@ -17,8 +19,13 @@ from std_msgs.msg import Float64MultiArray, Int64, String
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
+from peel_msgs_py.wire import DropLog, trajectory_nonfinite
 
 NODE_NAME = "peel_graph"
+#: The names of peel's nodes (launcher, bridges, planner, learner, recorder): one of them on the
+#: domain, besides this launcher, is another peel graph.
+PEEL_NODES = (NODE_NAME, "peel_sim_node", "peel_nachi_bridge", "peel_planner_node",
+              "model_learner_node", "peel_recorder")
 
 
 class GraphMonitor(Node):
@@ -31,6 +38,7 @@ class GraphMonitor(Node):
         self.trajectories: list[Any] = []
         self.version: int | None = None
         self.versions: list[int] = []
+        self.drops = DropLog()
         self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
                                  topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         # a deeper reader history than the latched profile's 1: quick successive swaps all count
@@ -41,13 +49,40 @@ class GraphMonitor(Node):
         self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
                                  topics.qos_profile(topics.MODEL_UPDATE, subscriber=True))
 
+    def peers(self) -> list[str]:
+        """What of another peel graph discovery shows now: nodes of a peel name (this launcher
+        excepted) and publishers of a ``/peel`` topic."""
+        names = [f"{ns.rstrip('/')}/{n}" for n, ns in self.get_node_names_and_namespaces()
+                 if n in PEEL_NODES]
+        own = self.get_fully_qualified_name()
+        if own in names:
+            names.remove(own)
+        pubs = [f"a publisher of {t}" for t, _ in self.get_topic_names_and_types()
+                if t.startswith("/peel/") and self.count_publishers(t) > 0]
+        return sorted(names) + pubs
+
+    def drop(self, topic: str, name: str, why: str) -> None:
+        """Count a refused message; warn when :class:`DropLog` says a line is due."""
+        line = self.drops.drop(topic, name, why)
+        if line is not None:
+            print(f"peel graph: warning: {line}", file=sys.stderr, flush=True)
+
     def on_trajectory(self, msg: Float64MultiArray) -> None:
         try:
-            self.trajectories.append(codec.trajectory_from_msg(msg))
+            traj = codec.trajectory_from_msg(msg)
         except PeelError as exc:
-            print(f"peel graph: warning: bad {topics.TRAJECTORY} message: {exc}", file=sys.stderr)
+            self.drop(topics.TRAJECTORY, "layout", f"does not decode: {exc}")
+            return
+        bad = trajectory_nonfinite(traj)
+        if bad is not None:
+            self.drop(topics.TRAJECTORY, f"'{bad}'", "holds non-finite values")
+            return
+        self.trajectories.append(traj)
 
     def on_version(self, msg: Int64) -> None:
+        if msg.data < 0:
+            self.drop(topics.MODEL_VERSION, "data", f"is negative ({msg.data})")
+            return
         self.version = int(msg.data)
         self.versions.append(int(msg.data))
 
@@ -55,14 +90,13 @@ class GraphMonitor(Node):
         try:
             self.updates.add_record(ModelRecord.from_json(msg.data))
         except PeelError as exc:
-            print(f"peel graph: warning: bad {topics.MODEL_INFO} message: {exc}", file=sys.stderr)
+            self.drop(topics.MODEL_INFO, "data", f"is not a model record: {exc}")
 
     def on_model_update(self, msg: String) -> None:
         try:
             self.updates.add_report(UpdateReport.from_json(msg.data))
         except PeelError as exc:
-            print(f"peel graph: warning: bad {topics.MODEL_UPDATE} message: {exc}",
-                  file=sys.stderr)
+            self.drop(topics.MODEL_UPDATE, "data", f"is not an update report: {exc}")
 
 
 def open_monitor(learner: str) -> GraphMonitor:

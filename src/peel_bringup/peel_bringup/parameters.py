@@ -21,6 +21,9 @@ GRAPH_SPECS: tuple[ParamSpec, ...] = (
               "wall s to wait for the learner's swap after the last task", min=0.0),
     ParamSpec("graph.stop_timeout_s", float, 20.0,
               "wall s a node gets to exit after SIGINT before SIGTERM / SIGKILL", min=0.1),
+    ParamSpec("graph.alone_wait_s", float, 5.0,
+              "wall s of DDS discovery before the start, looking for another peel graph on "
+              "the ROS domain (found: refused, exit 5)", min=0.0),
 )
 
 

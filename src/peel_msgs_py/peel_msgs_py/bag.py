@@ -23,11 +23,18 @@ A file without its summary and footer cannot be opened by ``rosbags`` (it checks
 chunk whose CRC holds, drops and reports the others, writes a complete file beside it and
 atomically replaces the original, which it keeps as ``NAME_0.mcap.orig``; then it rewrites
 ``metadata.yaml``.
+
+A write that fails (a full disk: ``ENOSPC``; any ``OSError``) raises :class:`BagWriteError`,
+whose message names the bag, the error and the repair command; the writer is then failed: later
+writes raise the same error and :meth:`BagWriter.close` only releases the file, which stays cut
+short until repaired. :data:`FAIL_AFTER_ENV` (a byte count in the environment) makes the file
+refuse, with ``ENOSPC``, any write past that many bytes: the full disk of the tests.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import struct
 import threading
@@ -53,7 +60,19 @@ COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4}
 _MAGIC = b"\x89MCAP0\r\n"
 _LIBRARY = "peel_msgs_py.bag (mcap-python)"
 
+#: Test hook: the bag file fails with ENOSPC once it would grow past this many bytes.
+FAIL_AFTER_ENV = "PEEL_BAG_FAIL_AFTER_BYTES"
+
 _typestore: Any = None
+
+
+class BagWriteError(PeelError):
+    """The bag could not be written (e.g. the disk is full); it is cut short."""
+
+
+def repair_hint(path: str | os.PathLike[str]) -> str:
+    """The command that makes a bag cut short readable again."""
+    return f"peel record --repair {path}"
 
 
 def typestore() -> Any:
@@ -99,9 +118,13 @@ class _DirectFile:
     def __init__(self, path: Path) -> None:
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         self._pos = 0
+        limit = os.environ.get(FAIL_AFTER_ENV, "")
+        self._limit = int(limit) if limit.isdigit() else None
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
         view = memoryview(data)
+        if self._limit is not None and self._pos + len(view) > self._limit:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         while view:
             n = os.write(self._fd, view)
             view = view[n:]
@@ -265,6 +288,8 @@ class BagWriter:
         self._flushed = _Span()
         self._pending = _Span()
         self.chunks_written = 0
+        #: the write error that cut the bag short (:class:`BagWriteError`), once one happened
+        self.failure: BagWriteError | None = None
         self._lock = threading.RLock()  # callbacks and timers may run on other threads
 
     # ------------------------------------------------------------------------------ lifecycle
@@ -325,9 +350,30 @@ class BagWriter:
         return self._flushed.count
 
     def close(self) -> None:
-        """Flush the open chunk, write index, summary, footer and the final ``metadata.yaml``."""
+        """Flush the open chunk, write index, summary, footer and the final ``metadata.yaml``;
+        a failed writer only releases its file (module docstring)."""
         with self._lock:
-            self._close_locked()
+            try:
+                if self.failure is None:
+                    self._guarded(self._close_locked)
+            finally:
+                if self._file is not None:
+                    self._file.close()
+                    self._mcap = self._file = None
+
+    def _guarded(self, fn: Any, *args: Any) -> None:
+        """``fn(*args)``; an ``OSError`` fails the writer (:class:`BagWriteError`)."""
+        if self.failure is not None:
+            raise self.failure
+        try:
+            fn(*args)
+        except OSError as exc:
+            why = exc.strerror or str(exc)
+            code = f" ({errno.errorcode[exc.errno]})" if exc.errno in errno.errorcode else ""
+            self.failure = BagWriteError(
+                f"writing bag {self.path} failed: {why}{code}; the bag is cut short, repair it "
+                f"with: {repair_hint(self.path)}")
+            raise self.failure from None
 
     def add_topic(self, name: str, msgtype: str, qos: Sequence[QosSpec | dict[str, Any]] = (),
                   *, msgdef: str | None = None, rihs01: str | None = None) -> None:
@@ -339,17 +385,17 @@ class BagWriter:
               publish_time_ns: int | None = None) -> None:
         """Append one serialized message received at ``log_time_ns`` (ns since the epoch)."""
         with self._lock:
-            self._write_locked(topic, data, log_time_ns, publish_time_ns)
+            self._guarded(self._write_locked, topic, data, log_time_ns, publish_time_ns)
 
     def tick(self) -> None:
         """Flush the open chunk if it is older than ``flush_interval_s``; refresh metadata."""
         with self._lock:
-            self._tick_locked()
+            self._guarded(self._tick_locked)
 
     def flush(self) -> None:
         """Write the open chunk now (and refresh ``metadata.yaml``)."""
         with self._lock:
-            self._flush_locked()
+            self._guarded(self._flush_locked)
 
     # -------------------------------------------------------------------- locked implementations
     def _add_topic_locked(

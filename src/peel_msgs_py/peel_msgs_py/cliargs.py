@@ -11,7 +11,8 @@ Bad input gets one line naming what is wrong and exit status 2, before any work 
   :data:`finite_float` / :data:`positive_float`, and comma-separated lists :func:`int_list`,
   :func:`float_list` (``nan``, ``inf`` and out-of-range values never pass a float type);
 * :func:`run_main`: the one top-level handler, used by ``peel`` and by the ``python -m`` entry
-  points: :class:`~peel_msgs_py.errors.PeelError` -> ``<prog>: error: <message>``, exit 2;
+  points: :class:`~peel_msgs_py.errors.PeelError` -> ``<prog>: error: <message>``, exit 2
+  (or the error's own ``exit_status``, e.g. 5 for a ROS domain another graph holds);
   an :class:`OSError` that escapes a command (disk full, a file removed under it) -> one line
   naming the file, exit 1; Ctrl-C -> exit 130. No traceback for any of them.
 
@@ -137,7 +138,7 @@ def run_main(prog: str, main: Callable[[list[str]], int | None],
         return 2
     except PeelError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
+        return int(getattr(exc, "exit_status", 2))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

@@ -18,3 +18,9 @@ class ParameterError(PeelError):
 
 class CheckpointError(PeelError):
     """A checkpoint file is truncated, mismatched, or not a safetensors checkpoint of ours."""
+
+
+class DomainTaken(PeelError):
+    """Another peel graph runs on the ROS domain; nothing was started (``peel graph`` exit 5)."""
+
+    exit_status = 5

@@ -42,6 +42,20 @@ def _loads(text: str, what: str) -> dict:
     return obj
 
 
+def _check_int(what: str, name: str, value: object, minimum: int, optional: bool) -> None:
+    """``value`` an integer >= ``minimum`` (None allowed when ``optional``), else PeelError."""
+    if value is None and optional:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise PeelError(f"{what}: '{name}' must be an integer >= {minimum}"
+                        f"{' or null' if optional else ''}, got {value!r}")
+
+
+def _check_str(what: str, name: str, value: object, optional: bool) -> None:
+    if not (isinstance(value, str) or (optional and value is None)):
+        raise PeelError(f"{what}: '{name}' must be a string, got {value!r}")
+
+
 @dataclass(frozen=True)
 class ModelRecord:
     """One model the planner planned with: its version and identity."""
@@ -51,6 +65,12 @@ class ModelRecord:
     path: str
     producer: str | None = None
     task: int | None = None
+
+    def __post_init__(self) -> None:
+        _check_int("model info", "version", self.version, 0, False)
+        _check_int("model info", "task", self.task, 1, True)
+        for name in ("sha256", "path", "producer"):
+            _check_str("model info", name, getattr(self, name), name == "producer")
 
     def is_update(self, producer: str, task: int) -> bool:
         """Whether this is ``producer``'s update after ``task``."""
@@ -83,6 +103,10 @@ class UpdateReport:
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
             raise PeelError(f"model update: status {self.status!r} is not one of {STATUSES}")
+        _check_int("model update", "task", self.task, 0, False)
+        _check_int("model update", "version", self.version, 0, True)
+        for name in ("producer", "reason", "sha256", "path"):
+            _check_str("model update", name, getattr(self, name), name in ("sha256", "path"))
 
     @property
     def failed(self) -> bool:
@@ -128,6 +152,12 @@ class UpdateWait:
     def add_report(self, rep: UpdateReport) -> None:
         if rep.producer == self.producer:
             self.reports[rep.task] = rep
+
+    def reported(self, task: int) -> UpdateReport | None:
+        """The learner's own report on its update after ``task`` (any final status), else None:
+        what a run waits for before it stops, so that the report is delivered and recorded."""
+        rep = self.reports.get(task)
+        return rep if rep is not None and rep.status != OFFERED else None
 
     def outcome(self, task: int) -> UpdateReport | None:
         """``swapped`` with the planner's version once its record of the update is in; the

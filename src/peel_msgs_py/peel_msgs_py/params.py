@@ -153,6 +153,8 @@ def load_param_file(path: str | os.PathLike[str], node_name: str) -> dict[str, A
 
 
 def _read_yaml(path: Path) -> Mapping[str, Any]:
+    if path.is_dir():
+        raise PeelError(f"parameter file {path} is a directory, not a file")
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -166,8 +168,9 @@ def _read_yaml(path: Path) -> Mapping[str, Any]:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise PeelError(f"malformed YAML in parameter file {path}{where}") from None
-    if doc is None:
-        return {}
+    if doc is None:  # empty, or comments only: a file that sets nothing is a mistake
+        raise PeelError(f"parameter file {path} is empty: it names no node (write e.g. "
+                        f"'peel_planner_node: {{ros__parameters: {{...}}}}')")
     if not isinstance(doc, Mapping):
         raise PeelError(f"parameter file {path} must map node names to ros__parameters")
     return doc

@@ -8,11 +8,14 @@ Records until ``--duration`` seconds (wall clock) have passed, or until SIGINT /
 closes the bag properly and prints a JSON summary on stdout. A recorder killed with SIGKILL (or
 a power cut) leaves a bag without its summary, a bad disk block a chunk whose CRC fails:
 ``--repair`` turns either into a complete bag holding every chunk whose CRC holds, reports the
-dropped ones and counts the messages kept (:mod:`peel_msgs_py.bagrepair`).
+dropped ones and counts the messages kept (:mod:`peel_msgs_py.bagrepair`). A write that fails
+while recording (a full disk) ends the recording with one line naming the bag, the error and
+the repair command, and exit status :data:`RECORDING_FAILED` (4).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import sys
@@ -22,6 +25,9 @@ from . import bag as bagmod
 from . import held_signals
 from .cliargs import ArgumentParser, positive_float, positive_int, run_main
 from .topics import RECORDED_TOPICS, topic
+
+#: Exit status of a recording that could not be written (the bag is cut short).
+RECORDING_FAILED = 4
 
 
 def _parser() -> ArgumentParser:
@@ -93,8 +99,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with _Stop() as stop:
             record(writer, names, args.duration, stop)
+    except bagmod.BagWriteError:
+        pass  # in writer.failure
     finally:
-        writer.close()
+        with contextlib.suppress(bagmod.BagWriteError):
+            writer.close()
+    if writer.failure is not None:
+        print(f"peel record: error: {writer.failure}", file=sys.stderr, flush=True)
+        return RECORDING_FAILED
     summary = {
         "bag": str(args.out),
         "messages": writer.message_count,

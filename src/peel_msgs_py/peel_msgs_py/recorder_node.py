@@ -9,7 +9,9 @@ are known (a timer polls the graph, a first message forces it): the bag holds th
 they offer and the type hash (RIHS01) they announce, both from their endpoint info; the schema
 text is the Jazzy definition from ``rosbags``' typestore. Chunks are flushed by size and by
 age (:class:`~peel_msgs_py.bag.BagWriter`); the same timer ticks the writer so that a quiet
-topic's open chunk still reaches the disk within ``flush_interval_s``.
+topic's open chunk still reaches the disk within ``flush_interval_s``. A write that fails (a full
+disk) stops the recording: :func:`record` raises the writer's
+:class:`~peel_msgs_py.bag.BagWriteError` (bag named, repair command included).
 
 The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' own depth is 10):
 a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
@@ -20,6 +22,7 @@ process before the stop is in the bag.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import sys
 import time
@@ -30,7 +33,7 @@ from typing import Any
 import rclpy
 from rclpy.node import Node
 
-from .bag import BagWriter, message_definition
+from .bag import BagWriteError, BagWriter, message_definition
 from .ros.qos import profile_to_bag
 from .topics import qos_profile, topic
 
@@ -75,13 +78,15 @@ class RecorderNode(Node):
         if topic_name not in self.registered:
             self.register(topic_name, force=True)
         received = int(info.get("received_timestamp", 0)) if isinstance(info, dict) else 0
-        self.writer.write(topic_name, data, received or time.time_ns())
-        self.received += 1
+        with contextlib.suppress(BagWriteError):  # kept in writer.failure; record() ends
+            self.writer.write(topic_name, data, received or time.time_ns())
+            self.received += 1
 
     def on_tick(self) -> None:
-        for name in self.specs.keys() - self.registered:
-            self.register(name, force=False)
-        self.writer.tick()
+        with contextlib.suppress(BagWriteError):
+            for name in self.specs.keys() - self.registered:
+                self.register(name, force=False)
+            self.writer.tick()
 
     def register(self, name: str, *, force: bool) -> None:
         """Add the topic's channel with its publishers' offered QoS and type hash."""
@@ -122,7 +127,8 @@ def drain(node: RecorderNode, limit_s: float = DRAIN_LIMIT_S) -> int:
 
 def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
            stop: Any) -> None:
-    """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``."""
+    """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``; a write
+    that failed ends it with the writer's :class:`~peel_msgs_py.bag.BagWriteError`."""
     t0 = time.monotonic()
     rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = None
@@ -130,16 +136,18 @@ def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
         node = RecorderNode(writer, names)
         print(f"peel record: recording {len(names)} topics to {writer.path}", file=sys.stderr,
               flush=True)
-        while not stop.requested and rclpy.ok():
+        while not stop.requested and rclpy.ok() and writer.failure is None:
             if duration_s is not None and time.monotonic() - t0 >= duration_s:
                 break
             rclpy.spin_once(node, timeout_sec=0.05)
-        if rclpy.ok():
+        if rclpy.ok() and writer.failure is None:
             drain(node)
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if writer.failure is not None:
+        raise writer.failure
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,7 +9,10 @@
   -(``OK START``)-> ``running`` -(``STOP``)-> ``stopping`` -> ``idle``; ``DONE`` / ``ALARM`` end a
   running task at once, a lost link ends it as ``aborted`` and returns to ``disconnected``;
 * **commands**: :meth:`command` (the planner's speed, mm/s) goes out as ``V`` only while the
-  task it answers runs; after ``STOP`` or a lost link nothing more is forwarded;
+  task it answers runs, and only inside ``[safety.u_min_mmps, safety.u_max_mmps]`` (default the
+  controller's 0-20 mm/s: a speed outside is clamped, a non-finite one dropped, both counted
+  and logged at most every few seconds); after ``STOP`` or a lost link nothing more is
+  forwarded;
 * **safety**, in the reading loop, one line at a time:
 
   - a sample with |F_RX| or |F_RZ| >= ``safety.f_prewarn_n`` (20 N, 4.2) sends ``STOP`` before
@@ -35,6 +38,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
+
+from peel_msgs_py.wire import DropLog, SpeedLimits
 
 from . import protocol as p
 from .config import LinkParams, SafetyParams
@@ -63,6 +68,7 @@ class BridgeStats:
     alarms: list[str] = field(default_factory=list)
     refused_v: int = 0
     dropped_commands: int = 0
+    clamped_commands: int = 0
     stop_delays_s: list[float] = field(default_factory=list)
     last_failure: str = ""
 
@@ -73,6 +79,8 @@ class NachiBridge:
     def __init__(self, link: LinkParams, safety: SafetyParams, listener: Listener) -> None:
         self.link, self.safety, self.listener = link, safety, listener
         self.stats = BridgeStats()
+        self.limits = SpeedLimits(safety.u_min_mmps, safety.u_max_mmps)
+        self._drops = DropLog()
         self.gave_up: str | None = None
         self._lock = threading.Lock()  # state, task, connection (with the node's command())
         self._state = DISCONNECTED
@@ -126,8 +134,16 @@ class NachiBridge:
         """Forward the planner's speed (mm/s) for task ``index`` as ``V``; False if dropped."""
         if not math.isfinite(u_mmps):
             self.stats.dropped_commands += 1
-            self._log("warn", f"not forwarding a non-finite command u = {u_mmps!r}")
+            self._log_drop(self._drops.drop("/peel/cmd_vel", "twist.linear.x",
+                                            f"is not finite ({u_mmps!r}); not forwarded"))
             return False
+        held = self.limits.clamp(u_mmps)
+        if held != u_mmps:
+            self.stats.clamped_commands += 1
+            self._log_drop(self._drops.drop(
+                "/peel/cmd_vel", "twist.linear.x", f"= {u_mmps:g} mm/s is outside "
+                f"{self.limits.describe()}; forwarding {held:g} mm/s", action="clamped"))
+            u_mmps = held
         with self._lock:
             task, conn = self._task, self._conn
             if self._state != RUNNING or task is None or task.index != index or conn is None:
@@ -139,6 +155,10 @@ class NachiBridge:
                 return False  # the reading thread sees the broken link and ends the task
             task.command_sent(u_mmps)
         return True
+
+    def _log_drop(self, line: str | None) -> None:
+        if line is not None:
+            self._log("warn", line)
 
     # ------------------------------------------------------------------ the thread
     def _run(self) -> None:

@@ -17,6 +17,7 @@ from typing import Any
 
 from peel_msgs_py.errors import ParameterError
 from peel_msgs_py.params import load_node_params, validate
+from peel_msgs_py.wire import CMD_MAX_MMPS, CMD_MIN_MMPS
 
 from .parameters import GROUPS, LINK_SPECS, NODE_NAME, NODE_SPECS, SAFETY_SPECS
 
@@ -44,6 +45,8 @@ class SafetyParams:
     stall_timeout_s: float
     bad_line_limit: int
     stop_timeout_s: float
+    u_min_mmps: float = CMD_MIN_MMPS
+    u_max_mmps: float = CMD_MAX_MMPS
 
 
 @dataclass(frozen=True)
@@ -79,6 +82,11 @@ class BridgeConfig:
             raise ParameterError(
                 f"parameter 'link.backoff_max_s' = {values['link.backoff_max_s']!r} is below "
                 f"'link.backoff_initial_s' = {values['link.backoff_initial_s']!r}")
+
+        if values["safety.u_max_mmps"] < values["safety.u_min_mmps"]:
+            raise ParameterError(
+                f"parameter 'safety.u_max_mmps' = {values['safety.u_max_mmps']!r} is below "
+                f"'safety.u_min_mmps' = {values['safety.u_min_mmps']!r}")
 
         def group(name: str, kind: type) -> Any:
             prefix = name + "."

@@ -32,6 +32,7 @@ from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
+from peel_msgs_py.wire import DropLog
 
 from . import protocol as p
 from .bridge import NachiBridge
@@ -69,6 +70,7 @@ class NachiBridgeNode(NamedRefusals, Node):
         self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
                                  to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
         self.updates = UpdateWait(self.cfg.node.learner_node)
+        self.drops = DropLog()
         self.model_version: int | None = None
         self.versions_seen: set[int] = set()
         self.version_at_start: dict[int, int | None] = {}
@@ -80,18 +82,23 @@ class NachiBridgeNode(NamedRefusals, Node):
         self.faults = RecentRises()
         publish_diagnostics(self, self.diagnostics)
         self.get_logger().info(f"bridge to the controller at {self.cfg.link.host}:"
-                               f"{self.cfg.link.port} ({p.PROTOCOL} {p.VERSION})")
+                               f"{self.cfg.link.port} ({p.PROTOCOL} {p.VERSION}), commands "
+                               f"limited to {self.bridge.limits.describe()}")
 
     # -- ROS callbacks ------------------------------------------------------------------------
     def on_cmd_vel(self, msg: TwistStamped) -> None:
         try:
             index = codec.task_from_frame_id(msg.header.frame_id)
         except PeelError as exc:
-            self.get_logger().warn(f"ignoring a command: {exc}")
+            self.log_drop(self.drops.drop(topics.CMD_VEL, "header.frame_id", f"is bad: {exc}"))
             return
         self.bridge.command(float(mps_to_mmps(msg.twist.linear.x)), index)
 
     def on_model_version(self, msg: Int64) -> None:
+        if msg.data < 0:
+            self.log_drop(self.drops.drop(topics.MODEL_VERSION, "data",
+                                          f"is negative ({msg.data})"))
+            return
         self.model_version = int(msg.data)
         self.versions_seen.add(int(msg.data))
 
@@ -99,13 +106,19 @@ class NachiBridgeNode(NamedRefusals, Node):
         try:
             self.updates.add_record(ModelRecord.from_json(msg.data))
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_INFO} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_INFO, "data",
+                                          f"is not a model record: {exc}"))
 
     def on_model_update(self, msg: String) -> None:
         try:
             self.updates.add_report(UpdateReport.from_json(msg.data))
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_UPDATE} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_UPDATE, "data",
+                                          f"is not an update report: {exc}"))
+
+    def log_drop(self, line: str | None) -> None:
+        if line is not None:
+            self.get_logger().warning(line)
 
     def on_tick(self) -> None:
         while not self.ended.empty():
@@ -167,7 +180,8 @@ class NachiBridgeNode(NamedRefusals, Node):
             traj.meta.update({
                 "task_index": result.index, "t0_ros_s": result.index * self.cfg.node.task_slot_s,
                 "model_version": self.version_at_start.get(result.index),
-                "model_versions": sorted(self.versions_seen)})
+                "model_versions": sorted(self.versions_seen),
+                "cmd_limits_mmps": [self.bridge.limits.u_min_mmps, self.bridge.limits.u_max_mmps]})
             self.pub_traj.publish(trajectory_msg(traj))
             self.get_logger().info(f"task {result.index + 1}: {result.outcome} ({result.reason}), "
                                    f"T_cpl={traj.t_cpl:.1f} s, model "

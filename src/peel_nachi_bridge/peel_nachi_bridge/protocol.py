@@ -21,6 +21,8 @@ import re
 from dataclasses import dataclass
 from typing import ClassVar
 
+from peel_msgs_py.wire import CMD_MAX_MMPS, CMD_MIN_MMPS
+
 PROTOCOL = "NACHI-PEEL"
 VERSION = 1
 DEFAULT_PORT = 48100
@@ -31,7 +33,7 @@ SAMPLE_PERIOD_S = 0.1
 #: No ``V`` (accepted or refused) for this long (controller time, s) during a task trips the watchdog.
 WATCHDOG_S = 1.0
 #: The controller's accepted command range, mm/s.
-V_MIN_MMPS, V_MAX_MMPS = 0.0, 20.0
+V_MIN_MMPS, V_MAX_MMPS = CMD_MIN_MMPS, CMD_MAX_MMPS
 #: Reasons of ``DONE``.
 DONE_REASONS = ("reached", "stopped", "timeout", "alarm")
 

@@ -11,10 +11,13 @@ refuses with the reason, keeping the old model. Versions come from a
 whoever asked for it and whatever the file is called); the active version goes out on
 ``/peel/model_version`` (Int64, transient local) and, with the model's identity (SHA-256,
 producer and task of a learner update), on ``/peel/model_info`` (JSON, transient local).
+A state message with a non-finite value is dropped where it enters, counted and logged
+(:class:`~peel_msgs_py.wire.DropLog`); the sample it belonged to is not planned on.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -37,6 +40,7 @@ from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
+from peel_msgs_py.wire import DropLog
 
 from .config import PlannerConfig
 from .control_loop import Answer, ControlLoop, StateAssembler
@@ -44,6 +48,10 @@ from .dynamics import learned_dynamics
 from .health import peak_force, planner_status
 from .model_check import resolve_model_path, validate_model
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
+
+#: The message field each part of a state sample comes from.
+WIRE_FIELD = {"fx_n": "wrench.force.x", "fz_n": "wrench.force.z", "v_mmps": "twist.linear.x",
+              "q_mm": "pose.position.x"}
 
 
 class PlannerNode(NamedRefusals, Node):
@@ -66,6 +74,7 @@ class PlannerNode(NamedRefusals, Node):
                                 self.values["node.seed"])
         warm_s = self.loop.warm_up(self.h)
         self.parts = StateAssembler()
+        self.drops = DropLog()
         qos = topics.qos_profile
         self.pub_cmd = self.create_publisher(TwistStamped, topics.CMD_VEL, qos(topics.CMD_VEL))
         self.pub_version = self.create_publisher(Int64, topics.MODEL_VERSION,
@@ -121,11 +130,20 @@ class PlannerNode(NamedRefusals, Node):
                                self.refusals, peak_force(self.loop.rows))]
 
     # -- state -------------------------------------------------------------------------------
-    def on_part(self, msg: Any, **parts: float) -> None:
+    def on_part(self, msg: Any, topic: str, **parts: float) -> None:
+        """One part of a state sample; a part with a non-finite value is dropped here."""
+        bad = next((k for k, v in parts.items() if not math.isfinite(v)), None)
+        if bad is not None:
+            line = self.drops.drop(topic, WIRE_FIELD[bad], f"is not finite ({parts[bad]!r})")
+            if line is not None:
+                self.get_logger().warn(line)
+            return
         try:
             task = codec.task_from_frame_id(msg.header.frame_id)
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a state message: {exc}")
+            line = self.drops.drop(topic, "header.frame_id", f"is bad: {exc}")
+            if line is not None:
+                self.get_logger().warn(line)
             return
         sample = self.parts.add(stamp_ns(msg.header.stamp), task, **parts)
         if sample is not None:
@@ -134,13 +152,13 @@ class PlannerNode(NamedRefusals, Node):
                 self.publish_cmd(answer)
 
     def on_wrench(self, msg: WrenchStamped) -> None:
-        self.on_part(msg, fx_n=msg.wrench.force.x, fz_n=msg.wrench.force.z)
+        self.on_part(msg, topics.WRENCH, fx_n=msg.wrench.force.x, fz_n=msg.wrench.force.z)
 
     def on_twist(self, msg: TwistStamped) -> None:
-        self.on_part(msg, v_mmps=mps_to_mmps(msg.twist.linear.x))
+        self.on_part(msg, topics.TWIST, v_mmps=mps_to_mmps(msg.twist.linear.x))
 
     def on_pose(self, msg: PoseStamped) -> None:
-        self.on_part(msg, q_mm=m_to_mm(msg.pose.position.x))
+        self.on_part(msg, topics.POSE, q_mm=m_to_mm(msg.pose.position.x))
 
     def publish_cmd(self, a: Answer) -> None:
         msg = TwistStamped()

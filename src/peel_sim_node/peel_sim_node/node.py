@@ -14,11 +14,16 @@ the paper's loop does (Algorithm 2 line 20): by its identity
 that it failed, was refused or skipped (then the next task starts at once). A model swapped in
 by anyone else does not end the wait. ``node.effects`` adds user effects (``module:function``,
 :func:`~peel_sim_node.effects.load_effects`) to the plant; a name that does not import is
-refused (exit 2) before any topic exists.
+refused (exit 2) before any topic exists. A command is executed only inside
+``[node.u_min_mmps, node.u_max_mmps]`` (default the Nachi controller's 0-20 mm/s,
+:class:`~peel_msgs_py.wire.SpeedLimits`): a faster or negative one is clamped, a non-finite one
+dropped, both counted and logged (:class:`~peel_msgs_py.wire.DropLog`) and counted in the
+trajectory's meta (``cmd_limits_mmps``, ``cmd_clamped``, ``cmd_dropped``).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Any
@@ -39,6 +44,7 @@ from peel_msgs_py.ros.messages import stamp, stamp_ns, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
+from peel_msgs_py.wire import DropLog, SpeedLimits
 
 from .config import SimConfig
 from .effects import load_effects
@@ -63,6 +69,10 @@ class SimNode(NamedRefusals, Node):
         super().__init__(NODE_NAME)
         values = declare(self, SPECS)
         self.p = {k: v for k, v in values.items() if k.startswith("node.")}
+        try:
+            self.limits = SpeedLimits(self.p["node.u_min_mmps"], self.p["node.u_max_mmps"])
+        except PeelError as exc:
+            raise PeelError(f"parameters 'node.u_min_mmps', 'node.u_max_mmps': {exc}") from None
         self.seq = TaskSequence(SimConfig.from_params(library_params(values)),
                                 source=self.p["node.source"], seed=self.p["node.seed"],
                                 task_slot_s=self.p["node.task_slot_s"],
@@ -81,6 +91,8 @@ class SimNode(NamedRefusals, Node):
         self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
                                  to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
         self.updates = UpdateWait(self.p["node.learner_node"])
+        self.drops = DropLog()
+        self.clamped = self.dropped = 0  # commands of the running task
         self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.model_version: int | None = None
         self.versions_seen: set[int] = set()
@@ -92,25 +104,44 @@ class SimNode(NamedRefusals, Node):
         self.last_outcome: str | None = None
         publish_diagnostics(self, self.diagnostics)
         self.get_logger().info(f"{self.p['node.source']} ready: {self.p['node.tasks']} tasks, "
-                               f"seed {self.p['node.seed']}")
+                               f"seed {self.p['node.seed']}, commands limited to "
+                               f"{self.limits.describe()}")
 
     # -- callbacks ---------------------------------------------------------------------------
     def on_cmd(self, msg: TwistStamped) -> None:
-        samples = self.seq.apply(stamp_ns(msg.header.stamp), mps_to_mmps(msg.twist.linear.x))
+        """A command answering the waiting sample, executed inside the limits."""
+        u = float(mps_to_mmps(msg.twist.linear.x))
+        if not math.isfinite(u):
+            self.dropped += 1
+            self.log_drop(self.drops.drop(topics.CMD_VEL, "twist.linear.x",
+                                          f"is not finite ({u!r})"))
+            return
+        held = self.limits.clamp(u)
+        samples = self.seq.apply(stamp_ns(msg.header.stamp), held)
         if samples is None:
             return
+        if held != u:
+            self.clamped += 1
+            self.log_drop(self.drops.drop(
+                topics.CMD_VEL, "twist.linear.x", f"= {u:g} mm/s is outside "
+                f"{self.limits.describe()}; executed {held:g} mm/s", action="clamped"))
         for s in samples:
             self.publish(s)
         self.asked = time.monotonic()
         if self.seq.ended:
             self.end_task(None)
 
+    def log_drop(self, line: str | None) -> None:
+        if line is not None:
+            self.get_logger().warn(line)
+
     def on_model_info(self, msg: String) -> None:
         """The planner's active model (version and identity)."""
         try:
             rec = ModelRecord.from_json(msg.data)
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_INFO} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_INFO, "data", f"is not a model record: "
+                                                                     f"{exc}"))
             return
         self.updates.add_record(rec)
         self.model_version = rec.version
@@ -121,7 +152,8 @@ class SimNode(NamedRefusals, Node):
         try:
             self.updates.add_report(UpdateReport.from_json(msg.data))
         except PeelError as exc:
-            self.get_logger().error(f"ignoring a malformed {topics.MODEL_UPDATE} message: {exc}")
+            self.log_drop(self.drops.drop(topics.MODEL_UPDATE, "data",
+                                          f"is not an update report: {exc}"))
 
     def on_tick(self) -> None:
         waited = time.monotonic() - self.since
@@ -184,7 +216,12 @@ class SimNode(NamedRefusals, Node):
 
     def end_task(self, outcome: str | None) -> None:
         traj = self.seq.finish({"model_version": self.version_at_start,
-                                "model_versions": sorted(self.versions_seen)}, outcome)
+                                "model_versions": sorted(self.versions_seen),
+                                "cmd_limits_mmps": [self.limits.u_min_mmps,
+                                                    self.limits.u_max_mmps],
+                                "cmd_clamped": self.clamped, "cmd_dropped": self.dropped},
+                               outcome)
+        self.clamped = self.dropped = 0
         self.pub_traj.publish(trajectory_msg(traj))
         self.finished_tasks += 1
         self.last_outcome = traj.outcome

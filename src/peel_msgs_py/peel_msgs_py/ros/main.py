@@ -15,6 +15,9 @@
   (no ``KeyboardInterrupt`` raised at some arbitrary line); an error that follows from the
   shutdown (an entity created on a closed context) ends the node quietly too; a second signal
   changes nothing.
+* While it spins, the node looks every :data:`TWIN_CHECK_S` for a second node of its own name
+  on the ROS domain (another graph, or the same node started twice by hand) and warns once,
+  naming the domain: two such nodes answer each other's topics and services.
 * Run as a program (``args`` None), the process then ends at once (:func:`exit_now`): the node
   and the context are closed, files are written atomically, and the interpreter's own teardown
   (torch's thread pools) took 1-4 s per node on a loaded 2-core machine.
@@ -26,6 +29,7 @@ import contextlib
 import os
 import signal
 import sys
+import time
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -38,6 +42,32 @@ from ..params import ros_args_overrides
 
 #: How often (s) the spin loop looks at ``node.done``.
 POLL_S = 0.2
+#: How often (s) a spinning node looks for a second node of its name.
+TWIN_CHECK_S = 2.0
+
+
+class TwinWatch:
+    """Warns once when a second node of ``node``'s name and namespace appears on the domain."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.next_s = time.monotonic() + TWIN_CHECK_S
+        self.warned = False
+
+    def check(self) -> None:
+        now = time.monotonic()
+        if self.warned or now < self.next_s or not self.node.context.ok():
+            return
+        self.next_s = now + TWIN_CHECK_S
+        own = (self.node.get_name(), self.node.get_namespace())
+        twins = sum(1 for pair in self.node.get_node_names_and_namespaces() if pair == own)
+        if twins > 1:
+            self.warned = True
+            domain = os.environ.get("ROS_DOMAIN_ID") or "0"
+            self.node.get_logger().warn(
+                f"a second node named {self.node.get_fully_qualified_name()} is on ROS domain "
+                f"{domain}: two graphs on one domain mix their data; stop one, or give it a "
+                f"domain of its own (ROS_DOMAIN_ID)")
 
 
 def spin_until_done(node: Node) -> int:
@@ -51,9 +81,11 @@ def spin_until_done(node: Node) -> int:
             raise
         return 0  # a signal shut the context down between the check above and here
     executor.add_node(node)
+    twins = TwinWatch(node)
     try:
         while rclpy.ok() and not getattr(node, "done", False):
             executor.spin_once(timeout_sec=POLL_S)
+            twins.check()
     finally:
         executor.remove_node(node)
         executor.shutdown(timeout_sec=1.0)
