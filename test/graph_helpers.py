@@ -10,8 +10,9 @@ import threading
 import time
 from pathlib import Path
 
-# The learner's Algorithm 1 cut down to one meta step on a few slices: the tests check the
-# traffic and the swap, not what an update learns. Indented to sit under ``ros__parameters:``.
+# The learner's Algorithm 1 cut down to one meta step on a few slices, every update offered
+# unchecked (gate.holdout 0): the tests check the traffic and the swap, not what an update
+# learns (test_model_gate.py checks the gate). Indented to sit under ``ros__parameters:``.
 SMALL_MAML = """\
     maml:
       meta_steps: 1
@@ -19,6 +20,8 @@ SMALL_MAML = """\
       query_slices: 4
       eval_slices: 4
       m: 2
+    gate:
+      holdout: 0.0
 """
 
 
