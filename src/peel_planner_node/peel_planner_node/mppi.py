@@ -267,10 +267,9 @@ class Planner:
                          "all_unsafe": bool((g[:n_w] >= 0.0).all()),
                          "v0": rows[:, 0].double().numpy(),
                          "first": out[:, :self.k, 1:3].double().numpy()}
-            if cand is not None:
-                idx = ([n_w - 1] if self.config.safety.null_sample else [n_w]) + \
-                    list(range(n_w if self.config.safety.null_sample else n_w + 1, r))
-                self.last["check"] = (cand.double().numpy(), g[idx].double().numpy())
+            if cand is not None:  # the candidates: the slowest sequence (c_0) and the rest
+                first = n_w - 1 if self.config.safety.null_sample else n_w
+                self.last["check"] = (cand.double().numpy(), g[first:].double().numpy())
         return self.U.numpy().copy()
 
     def _shift(self) -> None:
