@@ -1,4 +1,4 @@
-"""``peel bench sim|model|planner|ros|nachi|nachi-graph``: benchmarks are commands that print one JSON object.
+"""``peel bench sim|model|planner|safety|ros|nachi|nachi-graph``: benchmarks are commands that print one JSON object.
 
 Each target lives with the code it measures; this module only dispatches, so that
 ``peel bench --help`` lists them in one place.
@@ -15,6 +15,8 @@ TARGETS: dict[str, tuple[str, str]] = {
     "sim": ("peel_sim_node.bench:main", "simulator throughput against raw stepSimulation (docs/simulator.md)"),
     "model": ("model_learner_node.bench:main", "training samples/s and inference latency (docs/model.md)"),
     "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
+    "safety": ("peel_bringup.bench_safety:main",
+               "prewarnings and peak forces per plant level, guarded planner vs unguarded vs pytorch_mppi"),
     "ros": ("peel_msgs_py.ros.bench:main", "rclpy pub/sub and service round trips between two processes"),
     "nachi": ("peel_nachi_bridge.bench:main", "STOP delay of the Nachi bridge on a force spike"),
     "nachi-graph": ("peel_bringup.bench_nachi:main",

@@ -290,6 +290,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "goals": _goals(by, cases), "flop_floor": floor}
 
 
+#: The guard of the force limit switched off (Eq. M1-M3): the planner as it is without it.
+UNGUARDED: dict[str, Any] = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
+                             "safety.null_sample": False, "safety.check.enabled": False}
+
 #: --cost-study variants: peel with one default undone (an ablation of today's defaults, see
 #: docs/planner.md), peel configured as pytorch_mppi's algorithm, and two more iterations
 STUDY_VARIANTS: dict[str, dict[str, Any]] = {
@@ -313,6 +317,8 @@ STUDY_VARIANTS: dict[str, dict[str, Any]] = {
     "noise_white": {"mppi.noise_correlation": 0.0, "mppi.control_term": "per_step"},
     "noise_ar1_per_step": {"mppi.noise_correlation": 0.8, "mppi.control_term": "per_step"},
     "noise_ar1_joint": {"mppi.noise_correlation": 0.8, "mppi.control_term": "joint"},
+    # the planner without the guard of the force limit (docs/planner.md, Eq. M1-M3)
+    "peel_unguarded": UNGUARDED,
 }
 
 

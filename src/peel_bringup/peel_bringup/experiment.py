@@ -18,7 +18,9 @@ torch thread, so the results do not depend on ``workers``.
 Per task (``results.json``): ``cost`` (J, Eq. 3, :func:`peel_planner_node.cost.episode_cost`),
 ``t_cpl``, ``sum_fx``, ``sum_fz`` (Table 1), ``outcome``, ``model_version`` (the version of the
 model that planned this task: 0 = pretrained), ``update_s`` (wall time of the update that produced
-that model, 0 for the pretrained model and the methods that never update).
+that model, 0 for the pretrained model and the methods that never update), ``planner_guard``
+(what the guard of the force limit did in the task, also in the trajectory's meta:
+:meth:`peel_planner_node.guard.GuardStats.as_dict`).
 
 ``run_sweep`` is Table 2: the OL-MPPI model of the last task, one peel per (value, seed) on fresh
 plant substrates, N, H and lambda varied one at a time around the planner defaults.
@@ -291,8 +293,9 @@ def run_job(method: str, seed: int, setup: Setup,
             episode_s = time.perf_counter() - t0
             j = episode_cost(traj, cost)
             traj.meta = {**traj.meta, "cost": j, "task": k + 1, "method": method, "seed": seed,
-                         "model_version": version}
+                         "model_version": version, "planner_guard": planner.guard.as_dict()}
             rec = {"task": k + 1, **_trajectory_record(traj, j), "model_version": version,
+                   "planner_guard": traj.meta["planner_guard"],
                    "update_s": update_s, "plan_s": float(np.mean(plan_times)) if plan_times
                    else 0.0, "episode_s": episode_s, "substrate": params}
             last = traj

@@ -10,6 +10,12 @@ run one OL-MPPI cycle at every control instant (docs/graph.md, "Time and lockste
   :meth:`Planner.plan` (Algorithm 2) on the task's history; between control instants only the
   20 N prewarning and t_max (:class:`~peel_planner_node.safety.SafetyMonitor`), answered at
   once with a zero command. A re-sent sample (same stamp) gets the answer already computed.
+
+The guard of the force limit (:mod:`~peel_planner_node.guard`, Eq. M1-M3) is the planner's; the
+loop keeps what a node reports of it as plain fields: ``margin_n`` (the larger axis margin in
+use at the last plan, N), ``margins_n`` (RX, RZ) and ``guard`` (the task's
+:meth:`~peel_planner_node.guard.GuardStats.as_dict`); a fallback is a line of its own, and the
+line that ends a task carries the task's guard summary.
 """
 
 from __future__ import annotations
@@ -97,6 +103,9 @@ class ControlLoop:
         self.cycles = 0
         #: wall s of each plan() against the control period (steps * dt, 0.5 s): /diagnostics
         self.latency = DurationWindow(budget_s=self.steps * cfg.cost.dt_s)
+        self.margin_n = 0.0
+        self.margins_n: tuple[float, float] = (0.0, 0.0)
+        self.guard: dict[str, Any] = {}
 
     def set_dynamics(self, dynamics: Any) -> None:
         self.planner.set_dynamics(dynamics)
@@ -140,7 +149,8 @@ class ControlLoop:
             return None
         self.answered[s.stamp_ns] = 0.0
         return Answer(s.stamp_ns, self.task, 0.0, f"task {self.task + 1}: blade stopped "
-                      f"({stop.reason} at t={stop.t:.1f} s, between control instants)")
+                      f"({stop.reason} at t={stop.t:.1f} s, between control instants); "
+                      f"{guard_line(self.guard)}")
 
     def new_task(self, s: StateSample) -> str:
         """A fresh planner for task ``s.task`` with the current model and configuration."""
@@ -149,6 +159,7 @@ class ControlLoop:
         self.planner.reset()
         self.task, self.t0_ns = s.task, s.stamp_ns
         self.rows, self.answered, self.u_hold = [], {}, 0.0
+        self.guard = {}
         return f"task {s.task + 1} starts at ROS time {s.stamp_ns / 1e9:.1f} s"
 
     def plan(self, s: StateSample, note: str | None) -> Answer:
@@ -164,5 +175,31 @@ class ControlLoop:
         self.answered[s.stamp_ns] = u
         stop = self.planner.stop
         if stop is not None and not was_stopped:
-            note = f"task {self.task + 1}: blade stopped ({stop.reason} at t={stop.t:.1f} s)"
+            note = (f"task {self.task + 1}: blade stopped ({stop.reason} at t={stop.t:.1f} s); "
+                    f"{guard_line(self.guard)}")
+        elif stop is None:
+            note = self.read_guard(history, note)
         return Answer(s.stamp_ns, self.task, u, note)
+
+    def read_guard(self, history: Trajectory, note: str | None) -> str | None:
+        """Copy the guard's state after a plan into the plain fields; a fallback's line."""
+        last = self.planner.last
+        self.margins_n = (float(last["margin"][0]), float(last["margin"][1]))
+        self.margin_n = max(self.margins_n)
+        self.guard = self.planner.guard.as_dict()
+        if not last.get("fallback"):
+            return note
+        line = (f"task {self.task + 1}: guard fallback at t={float(history.t[-1]):.1f} s: "
+                f"u* = {last['u_star']:.2f} mm/s and even u_min predicted over "
+                f"{self.cfg.safety.f_prewarn_n:g} N - margin ({self.margins_n[0]:.2f}, "
+                f"{self.margins_n[1]:.2f}) N; sent {last['u_out']:.2f} mm/s")
+        return line if note is None else f"{note}; {line}"
+
+
+def guard_line(g: dict[str, Any]) -> str:
+    """One log line of a task's guard summary (:meth:`GuardStats.as_dict`)."""
+    if not g:
+        return "guard: no plan"
+    return (f"guard: {g['commands_reduced']} of {g['plans']} commands reduced (at most "
+            f"{g['reduced_max_mmps']:.2f} mm/s), {g['fallbacks']} fallbacks, margin max "
+            f"({g['margin_max_n'][0]:.2f}, {g['margin_max_n'][1]:.2f}) N")

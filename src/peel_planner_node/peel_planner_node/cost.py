@@ -37,7 +37,13 @@ Planning only, barrier (docs/planner.md): per sample and axis::
            + stop_weight * [|F| >= f_prewarn_n]
 
 so a predicted force that would stop the task costs at least ``weight + stop_weight`` per
-sample (18 by default, against ~0.5 for the largest Eq. 4 force term).
+sample (18 by default, against ~0.5 for the largest Eq. 4 force term). With the force margin
+m_a of the planner's guard (Eq. M1, :mod:`~.guard`) the limit is tightened per axis (Eq. M2)::
+
+    B_a(F) = weight * (max(0, |F| - start_n) / max(f_prewarn_n - m_a - start_n, 1 N))^2
+             + stop_weight * [|F| >= f_prewarn_n - m_a]
+
+which is B(F) for m_a = 0.
 
 A new term is a new :class:`Critic` (``name``, ``in_paper``, ``score(rollouts) -> [N]``) passed
 to ``Cost(cfg, critics=[...])``.
@@ -68,7 +74,8 @@ class Rollouts:
     sample's time from the task start (s); ``task_over``: the last sample ends the task (a
     finished trajectory) rather than a planning horizon. :meth:`reach` gives whether and when
     each sequence reached q_ter (computed on first use: only phi needs it, and only late in a
-    task).
+    task). ``margin`` [2]: the force margin m_a per axis (Eq. M1) the barrier adds to |F_a|
+    (Eq. M2), None for none.
     """
 
     q: torch.Tensor
@@ -81,6 +88,7 @@ class Rollouts:
     dt: float
     reached: torch.Tensor | None = None
     t_reach: torch.Tensor | None = None
+    margin: torch.Tensor | None = None
 
     @property
     def fx(self) -> torch.Tensor:
@@ -104,13 +112,14 @@ class Rollouts:
 
     @classmethod
     def predicted(cls, q_prev: float | torch.Tensor, t_now: float, out: torch.Tensor,
-                  cfg: CostConfig) -> Rollouts:
+                  cfg: CostConfig, margin: torch.Tensor | None = None) -> Rollouts:
         """Rollouts ``out`` [N, S, 3] (q_mm, fx_N, fz_N) of the samples t_now + dt .. t_now +
-        S dt (S >= 1), from the measured ``q_prev`` at t_now (float, or [N] per sequence)."""
+        S dt (S >= 1), from the measured ``q_prev`` at t_now (float, or [N] per sequence);
+        ``margin`` [2] per axis (Eq. M2) or None."""
         q, dq, active = _positions(q_prev, out[..., 0], cfg.q_ter_mm)
         return cls(q=q, dq=dq, forces=out[..., 1:3], active=active,
                    t_end=t_now + q.shape[1] * cfg.dt_s, task_over=False, q_ter=cfg.q_ter_mm,
-                   dt=cfg.dt_s)
+                   dt=cfg.dt_s, margin=margin)
 
     @classmethod
     def measured(cls, traj: Trajectory, cfg: CostConfig) -> Rollouts:
@@ -200,7 +209,8 @@ class ForceCritic(RunningCritic):
 
 
 class BarrierCritic(RunningCritic):
-    """Planning only: B(F_RX_t) + B(F_RZ_t) (module docstring)."""
+    """Planning only: B(F_RX_t) + B(F_RZ_t) (module docstring); with the margin m_a of Eq. M1
+    in the rollouts, the limit of each axis is f_prewarn_n - m_a (Eq. M2, :meth:`tightened`)."""
 
     name = "barrier"
 
@@ -212,6 +222,8 @@ class BarrierCritic(RunningCritic):
     def sample_costs(self, r: Rollouts) -> torch.Tensor:
         c = self.cfg
         f = r.forces.abs()  # both axes at once, [N, S, 2]
+        if r.margin is not None:
+            return self.tightened(f, r.margin.to(f.dtype))
         key = (f.dtype, f.device)
         if key not in self._axis_weights:  # the sums over the 2 axes as matmuls (faster)
             self._axis_weights[key] = tuple(torch.full((2,), w, dtype=f.dtype, device=f.device)
@@ -221,6 +233,19 @@ class BarrierCritic(RunningCritic):
         out = torch.matmul(over * over, quadratic)
         if c.stop_weight:
             out += torch.matmul((f >= c.f_prewarn_n).to(f.dtype), stop)
+        return out
+
+
+    def tightened(self, f: torch.Tensor, margin: torch.Tensor) -> torch.Tensor:
+        """Eq. M2: B_a with the limit f_prewarn_n - m_a per axis (the ramp from start_n reaches
+        ``weight`` there, at least 1 N above start_n), summed over the two axes."""
+        c = self.cfg
+        lim = c.f_prewarn_n - margin
+        span = (lim - c.start_n).clamp(min=1.0)
+        over = (f - c.start_n).clamp(min=0.0) / span
+        out = c.weight * (over * over).sum(dim=-1)
+        if c.stop_weight:
+            out += c.stop_weight * (f >= lim).to(f.dtype).sum(dim=-1)
         return out
 
 
@@ -289,10 +314,11 @@ class Cost:
         """Each critic's N costs, by name (diagnostics: which term drives a plan)."""
         return {c.name: c.score(r) for c in (self.paper_critics if paper_only else self.critics)}
 
-    def rollout_terms(self, q_prev: float, t_now: float,
-                      out: torch.Tensor) -> dict[str, torch.Tensor]:
-        """:meth:`terms` of predicted rollouts ``out`` [N, S, 3] (:meth:`Rollouts.predicted`)."""
-        return self.terms(Rollouts.predicted(q_prev, t_now, out, self.cfg))
+    def rollout_terms(self, q_prev: float, t_now: float, out: torch.Tensor,
+                      margin: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """:meth:`terms` of predicted rollouts ``out`` [N, S, 3] (:meth:`Rollouts.predicted`),
+        the barrier on |F| + ``margin`` (Eq. M2) when one is given."""
+        return self.terms(Rollouts.predicted(q_prev, t_now, out, self.cfg, margin))
 
     def rollout_cost(self, q_prev: float, t_now: float, out: torch.Tensor) -> torch.Tensor:
         """The planner's objective of each rollout, [N]: the sum of every critic."""

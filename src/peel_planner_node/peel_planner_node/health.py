@@ -23,8 +23,10 @@ def peak_force(rows: Sequence[Sequence[float]]) -> float | None:
 
 
 def planner_status(latency: DurationWindow, cfg: PlannerConfig, model: ModelRecord,
-                   refusal: str | None, refusals: int, peak_n: float | None) -> Status:
-    """plan() latency against the control period, late commands, the model and the margins."""
+                   refusal: str | None, refusals: int, peak_n: float | None,
+                   error_margin_n: float = 0.0) -> Status:
+    """plan() latency against the control period, late commands, the model and the margins
+    (``error_margin_n``: the guard's margin from the model's measured force error, Eq. M1)."""
     median, worst, late = latency.summary()
     period = latency.budget_s or 0.0
     checks: list[Check] = []
@@ -47,6 +49,7 @@ def planner_status(latency: DurationWindow, cfg: PlannerConfig, model: ModelReco
         "prewarning (N)": prewarn, "barrier onset (N)": cfg.cost.barrier.start_n,
         "planning margin (N)": prewarn - cfg.cost.barrier.start_n,
         "task margin (N)": None if peak_n is None else prewarn - peak_n,
+        "model-error margin (N)": error_margin_n,
         "N": cfg.mppi.n_samples, "H": cfg.mppi.horizon,
     }
     return make_status("peel_planner_node: planning", "peel_planner_node", checks, values,

@@ -53,8 +53,16 @@ from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import PlannerConfig
-from .cost import Cost, total
+from .cost import Cost, Rollouts, total
 from .dynamics import Dynamics
+from .guard import (
+    ForceMargin,
+    GuardStats,
+    check_candidates,
+    first_period_forces,
+    largest_safe,
+    peak_over_limit,
+)
 from .safety import SafetyMonitor, Stop
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -132,6 +140,7 @@ class Planner:
         self.k = m.steps_per_horizon_step
         self.dtype = _DTYPES[m.dtype]
         self.safety = SafetyMonitor(self.config.safety)
+        self.margin = ForceMargin(self.config.safety.margin)
         self.set_dynamics(dynamics)
         self._gen = torch.Generator(device="cpu")
         self._noise = torch.empty((self.n, self.h), dtype=self.dtype)
@@ -152,6 +161,9 @@ class Planner:
         self._gen.manual_seed(int(m.seed))
         self._issued: tuple[float, float, float] | None = None  # (t, q, u*) of the last command
         self.safety.reset()
+        self.margin.reset()
+        self.guard = GuardStats()
+        self._predicted: tuple[float, np.ndarray] | None = None  # (t, |F| [k, 2]) of u*
         self.last = {}
 
     def set_dynamics(self, dynamics: Dynamics) -> None:
@@ -187,9 +199,37 @@ class Planner:
             self.observe((q1 - q0) / (t1 - t0), u0)
             self._issued = None
 
+    # ------------------------------------------------------------------ margin (Eq. M1)
+    def _observe_forces(self, history: Trajectory) -> None:
+        """Eq. M1's errors: the forces measured since the last command against those the
+        model predicted for it (the samples t_issue + dt, ..., at most one period)."""
+        if self._predicted is None:
+            return
+        t0, pred = self._predicted
+        tail = history.as_array()[-(len(pred) + 1):]
+        step = np.rint((tail[:, 0] - t0) / self.config.cost.dt_s).astype(int) - 1
+        keep = (tail[:, 0] > t0 + 1e-9) & (step >= 0) & (step < len(pred))
+        if keep.any():
+            self.margin.observe(tail[keep][:, [4, 5]], pred[step[keep]])
+            self._predicted = None
+
     # ------------------------------------------------------------------ MPPI (lines 4-14)
+    def _rows(self, v: torch.Tensor) -> tuple[torch.Tensor, int, torch.Tensor | None]:
+        """The batch: the N samples, the slowest sequence (``safety.null_sample``: weighted
+        with them, Eq. 31) and Eq. M3's candidates; returns it, the weighted row count and the
+        candidate speeds."""
+        g, m = self.config.safety, self.config.mppi
+        null = torch.full((1, self.h), float(m.u_min), dtype=self.dtype)
+        weighted = torch.cat([v, null]) if g.null_sample else v
+        if not g.check.enabled:
+            return weighted, len(weighted), None
+        c, seq = check_candidates(self.U, float(v[:, 0].max()), m.u_min, g.check.candidates)
+        return torch.cat([weighted, seq[1:] if g.null_sample else seq]), len(weighted), c
+
     def update(self, history: Trajectory) -> np.ndarray:
-        """One MPPI update of U from ``history`` (Algorithm 2 lines 4-14); returns the new U."""
+        """One MPPI update of U from ``history`` (Algorithm 2 lines 4-14); returns the new U.
+        The barrier sees the margin m_a (Eq. M2); Eq. M3's candidates are rolled out in the
+        same batch and their g kept in ``last["check"]``."""
         m = self.config.mppi
         t_now, q_now = float(history.t[-1]), float(history.q[-1])
         with torch.inference_mode():
@@ -197,15 +237,19 @@ class Planner:
             if self._ar is not None:  # AR(1) over the horizon, unit variance per step
                 noise = noise @ self._ar
             u = self.U
-            v = torch.clamp(u + noise * math.sqrt(self.sigma), m.u_min, m.u_max)
+            rows, n_w, cand = self._rows(torch.clamp(u + noise * math.sqrt(self.sigma),
+                                                     m.u_min, m.u_max))
+            v = rows[:n_w]
             eps = v - u
-            v_model = (v.unsqueeze(-1).expand(self.n, self.h, self.k).reshape(self.n, self.h * self.k)
-                       if self.k > 1 else v)
+            r = len(rows)
+            v_model = (rows.unsqueeze(-1).expand(r, self.h, self.k).reshape(r, self.h * self.k)
+                       if self.k > 1 else rows)
             out = self.dynamics.rollout(history, v_model)
-            if out.shape != (self.n, self.h * self.k, 3):
+            if out.shape != (r, self.h * self.k, 3):
                 raise PeelError(f"dynamics returned shape {tuple(out.shape)}, "
-                                f"expected {(self.n, self.h * self.k, 3)}")
-            terms = self.cost.rollout_terms(q_now, t_now, out)
+                                f"expected {(r, self.h * self.k, 3)}")
+            margin = torch.as_tensor(self.margin.value, dtype=out.dtype)
+            terms = self.cost.rollout_terms(q_now, t_now, out[:n_w], margin)
             j = total(terms).to(self.dtype)
             if not bool(torch.isfinite(j).all()):
                 raise PeelError("rollout cost is not finite: the model predicted NaN/inf forces")
@@ -215,8 +259,17 @@ class Planner:
             s = j + ctrl
             omega = torch.softmax(-(s - s.min()) / self.lam, dim=0)  # Eq. 38
             self.U = omega @ v  # Eq. 31
+            active = Rollouts.predicted(q_now, t_now, out, self.cost.cfg).active
+            g = peak_over_limit(out, active, margin, self.config.safety.f_prewarn_n)
             self.last = {"omega": omega, "cost": j, "terms": terms, "control": ctrl, "v": v,
-                         "eps": eps, "ess": float(1.0 / (omega * omega).sum())}
+                         "eps": eps, "ess": float(1.0 / (omega * omega).sum()),
+                         "margin": margin.numpy().copy(),
+                         "all_unsafe": bool((g[:n_w] >= 0.0).all()),
+                         "v0": rows[:, 0].double().numpy(),
+                         "first": out[:, :self.k, 1:3].double().numpy()}
+            if cand is not None:  # the candidates: the slowest sequence (c_0) and the rest
+                first = n_w - 1 if self.config.safety.null_sample else n_w
+                self.last["check"] = (cand.double().numpy(), g[first:].double().numpy())
         return self.U.numpy().copy()
 
     def _shift(self) -> None:
@@ -224,19 +277,41 @@ class Planner:
         fill = self.U[-1] if m.shift_fill == "last" else torch.tensor(m.u_init, dtype=self.dtype)
         self.U = torch.cat([self.U[1:], fill.reshape(1)]).clamp(m.u_min, m.u_max)
 
+    def _check(self, u_star: float) -> tuple[float, bool]:
+        """Eq. M3 on the last update's candidates: the command that goes out and whether it is
+        the fallback. U follows it (capped at the command, or u_min after a fallback)."""
+        if "check" not in self.last:
+            return u_star, False
+        c, g = self.last["check"]
+        safe = largest_safe(c, g, u_star)
+        if safe is None:
+            self.U = torch.full_like(self.U, float(self.config.mppi.u_min))
+            return float(self.config.safety.fallback_mmps), True
+        if safe < u_star:
+            self.U = torch.clamp(self.U, max=safe)
+        return safe, False
+
     def plan(self, history: Trajectory) -> float:
-        """The blade speed command u* (mm/s) for the next control period (Algorithm 2)."""
+        """The blade speed command (mm/s) for the next control period (Algorithm 2 with the
+        guard of Eq. M1-M3: u* checked against the model before it goes out)."""
         if len(history) == 0:
             raise PeelError("history 't' is empty: the planner needs at least the sample at t=0")
         if self.safety.check(history) is not None:
             return 0.0
         self._measure(history)
+        self._observe_forces(history)
         for _ in range(self.config.mppi.iterations):
             self.update(history)
         m = self.config.mppi
         u_star = float(min(max(float(self.U[0]), m.u_min), m.u_max))
-        self._issued = (float(history.t[-1]), float(history.q[-1]), u_star)
+        u_out, fallback = self._check(u_star)
+        self.guard.record(self.last["margin"], u_star, u_out, fallback, self.last["all_unsafe"])
+        self.last.update(u_star=u_star, u_out=u_out, fallback=fallback)
+        t_now = float(history.t[-1])
+        pred = first_period_forces(self.last["v0"], self.last["first"], u_out)
+        self._predicted = None if pred is None else (t_now, pred)
+        self._issued = (t_now, float(history.q[-1]), u_out)
         self._shift()
-        return u_star
+        return u_out
 
     __call__ = plan

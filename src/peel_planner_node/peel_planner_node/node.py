@@ -127,7 +127,7 @@ class PlannerNode(NamedRefusals, Node):
     def diagnostics(self) -> list[Status]:
         """The planner's health (:func:`~peel_planner_node.health.planner_status`), 1 Hz."""
         return [planner_status(self.loop.latency, self.cfg, self.ledger.latest, self.refusal,
-                               self.refusals, peak_force(self.loop.rows))]
+                               self.refusals, peak_force(self.loop.rows), self.loop.margin_n)]
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, topic: str, **parts: float) -> None:

@@ -1,0 +1,155 @@
+"""Holding the force limit under model error (docs/planner.md, Eq. M1-M3; not in the paper).
+
+The planner's model is wrong by an amount it can measure: at every control instant the forces
+it predicted for the command that went out are compared with the forces then measured.
+
+* Eq. M1, the margin per axis a in {RX, RZ}, over the last ``window`` errors W_a::
+
+      e = |F_a measured| - |F_a predicted|          (> 0: the model under-predicted)
+      m_a = min(m_max, kappa * sqrt(mean_{e in W_a} max(e, 0)^2))   once |W_a| >= min_count,
+      m_a = init_n                                                    before;
+
+  a one-sided RMS: only under-prediction tightens the limit, and as the errors of a model that
+  is right replace those of one that was wrong, m_a falls back (to 0 for an exact model).
+* Eq. M2, the tightened limit: the barrier critic and the check see |F_a| + m_a, i.e. the
+  prewarning f_prewarn is approached no closer than m_a by the prediction.
+* Eq. M3, the check of the command: candidate speeds c_0 = u_min < ... < c_{M-1} = max_k v^k_0,
+  each rolled out as c_j for the first control period and then the prior plan capped at c_j,
+  in the same batch as the N samples; g_j = max_{t, a} (|F_a,t| + m_a) - f_prewarn. The command
+  is min(u*, c*) with c* the speed where g first crosses 0 (linear between the last candidate
+  with g < 0 and the first with g >= 0; none: u*). If g_0 >= 0 (even u_min is predicted over
+  the tightened limit) the fallback ``fallback_mmps`` goes out.
+
+:class:`ForceMargin` is Eq. M1, :func:`check_candidates` / :func:`largest_safe` Eq. M3,
+:func:`first_period_forces` the prediction for the issued command (from the batch's first
+control period, which depends only on v_0), :class:`GuardStats` what the trajectory's meta
+and the log report. Everything here is plain torch / numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from .config import MarginConfig
+
+
+class ForceMargin:
+    """Eq. M1 (module docstring): the margin per axis from the measured force errors."""
+
+    def __init__(self, cfg: MarginConfig) -> None:
+        self.cfg = cfg
+        self.errors: tuple[deque[float], deque[float]] = (deque(maxlen=cfg.window),
+                                                          deque(maxlen=cfg.window))
+
+    def reset(self) -> None:
+        """A new task: no errors, the margin is ``init_n`` again."""
+        for d in self.errors:
+            d.clear()
+
+    def observe(self, measured: np.ndarray, predicted: np.ndarray) -> None:
+        """Add the errors |F measured| - |F predicted| of k model steps, [k, 2] (RX, RZ)."""
+        e = np.abs(np.asarray(measured, dtype=np.float64)) - np.abs(np.asarray(predicted))
+        for axis in (0, 1):
+            self.errors[axis].extend(float(x) for x in e[:, axis] if math.isfinite(x))
+
+    def axis_margin(self, axis: int) -> float:
+        """m_a of Eq. M1, N."""
+        c, errs = self.cfg, self.errors[axis]
+        if len(errs) < c.min_count:
+            return float(c.init_n)
+        under = np.maximum(np.asarray(errs), 0.0)
+        return float(min(c.max_n, c.kappa * math.sqrt(float(np.mean(under * under)))))
+
+    @property
+    def value(self) -> np.ndarray:
+        """[m_RX, m_RZ], N."""
+        return np.array([self.axis_margin(0), self.axis_margin(1)])
+
+
+def check_candidates(u_prior: torch.Tensor, top: float, u_min: float,
+                     count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. M3's candidates: speeds c [M] from u_min to ``top`` and their sequences [M, H]:
+    c_j for the first horizon step, then the prior plan ``u_prior`` [H] capped at c_j."""
+    top = max(float(top), u_min)
+    c = torch.linspace(u_min, top, count, dtype=u_prior.dtype)
+    seq = torch.minimum(u_prior.unsqueeze(0), c.unsqueeze(1))
+    seq[:, 0] = c
+    return c, seq
+
+
+def peak_over_limit(out: torch.Tensor, active: torch.Tensor, margin: torch.Tensor,
+                    limit: float) -> torch.Tensor:
+    """g [R] of Eq. M3: the largest |F_a| + m_a over the samples where the task still runs,
+    minus ``limit``, of rollouts ``out`` [R, S, 3] (``active`` [R, S] 0/1)."""
+    f = (out[..., 1:3].abs() + margin.to(out.dtype)) * active.to(out.dtype).unsqueeze(-1)
+    return f.amax(dim=(1, 2)) - limit
+
+
+def largest_safe(c: np.ndarray, g: np.ndarray, u_star: float) -> float | None:
+    """Eq. M3: min(u*, c*) with c* the first zero crossing of g over the candidates c (linear
+    between the two around it; no crossing: u*); None when g_0 >= 0 (nothing is safe)."""
+    bad = np.flatnonzero(g >= 0.0)
+    if bad.size == 0:
+        return float(u_star)
+    j = int(bad[0])
+    if j == 0:
+        return None
+    lo, hi = float(c[j - 1]), float(c[j])
+    frac = float(-g[j - 1] / (g[j] - g[j - 1]))
+    return float(min(u_star, lo + (hi - lo) * frac))
+
+
+def first_period_forces(v0: np.ndarray, forces: np.ndarray, u: float) -> np.ndarray | None:
+    """The predicted |F| [k, 2] of the first control period for speed ``u``, interpolated in
+    v_0 between the batch's rollouts (their first period depends on v_0 only): ``v0`` [R],
+    ``forces`` [R, k, 2]. None when ``u`` lies outside the sampled speeds."""
+    xs, first = np.unique(v0, return_index=True)
+    if not xs[0] - 1e-9 <= u <= xs[-1] + 1e-9:
+        return None
+    f = np.abs(forces[first])
+    if xs.size == 1:
+        return f[0]
+    out = np.empty(f.shape[1:])
+    for k in range(f.shape[1]):
+        for a in range(f.shape[2]):
+            out[k, a] = np.interp(u, xs, f[:, k, a])
+    return out
+
+
+@dataclass
+class GuardStats:
+    """What the guard did in one task: the trajectory meta's ``planner_guard`` fields."""
+
+    plans: int = 0
+    reduced: int = 0
+    reduced_max_mmps: float = 0.0
+    fallbacks: int = 0
+    unsafe_plans: int = 0
+    margins: list[list[float]] = field(default_factory=list)
+
+    def record(self, margin: np.ndarray, u_star: float, u_out: float, fallback: bool,
+               all_unsafe: bool) -> None:
+        """One plan: the margin in use, the MPPI command u* and the command that went out."""
+        self.plans += 1
+        self.margins.append([float(margin[0]), float(margin[1])])
+        self.fallbacks += int(fallback)
+        self.unsafe_plans += int(all_unsafe)
+        if not fallback and u_out < u_star - 1e-9:
+            self.reduced += 1
+            self.reduced_max_mmps = max(self.reduced_max_mmps, u_star - u_out)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready summary: counts and the margin in use (last, mean, max per axis), N."""
+        m = np.asarray(self.margins) if self.margins else np.zeros((1, 2))
+        return {"plans": self.plans, "commands_reduced": self.reduced,
+                "reduced_max_mmps": round(self.reduced_max_mmps, 4),
+                "fallbacks": self.fallbacks, "all_samples_unsafe": self.unsafe_plans,
+                "margin_last_n": [round(float(x), 4) for x in m[-1]],
+                "margin_mean_n": [round(float(x), 4) for x in m.mean(axis=0)],
+                "margin_max_n": [round(float(x), 4) for x in m.max(axis=0)]}

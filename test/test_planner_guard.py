@@ -1,0 +1,205 @@
+"""The guard of the force limit under model error (docs/planner.md, Eq. M1-M3): the margin
+from the measured force error, the slowest sequence among the samples, the check of the
+command and its fallback, on a small deterministic plant whose model is wrong by a known
+amount."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from peel_msgs_py.trajectory import Trajectory
+from peel_planner_node.config import MarginConfig, PlannerConfig
+from peel_planner_node.control_loop import ControlLoop, StateSample
+from peel_planner_node.cost import BarrierCritic, Cost
+from peel_planner_node.guard import ForceMargin, first_period_forces, largest_safe
+from peel_planner_node.mppi import Planner
+
+torch.set_num_threads(1)
+
+#: The guard switched off: the planner as it is without Eq. M1-M3.
+UNGUARDED = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
+             "safety.null_sample": False, "safety.check.enabled": False}
+DT = 0.1
+
+
+def true_forces(q: torch.Tensor | float, v: torch.Tensor | float) -> tuple:
+    """The test plant: F_RX = 4 + 1.6 v + 0.45 q (rises along the stroke), F_RZ = 3 + 0.2 v."""
+    return 4.0 + 1.6 * v + 0.45 * q, 3.0 + 0.2 * v
+
+
+class PlantModel:
+    """Planner dynamics of the test plant, F_RX under-predicted by ``offset`` N."""
+
+    def __init__(self, offset: float = 0.0, fx: float | None = None) -> None:
+        self.offset, self.fx = offset, fx
+
+    def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+        q = float(history.q[-1]) + DT * torch.cumsum(v, dim=1)
+        fx, fz = true_forces(q, v)
+        fx = torch.full_like(v, self.fx) if self.fx is not None else fx - self.offset
+        return torch.stack([q, fx, fz], dim=-1)
+
+
+def config(**flat) -> PlannerConfig:
+    return PlannerConfig().replace(**{"mppi.dtype": "float64", **flat})
+
+
+def peel(planner: Planner, steps_per_plan: int = 5, t_max: float = 30.0) -> Trajectory:
+    """Run the test plant under ``planner`` (velocity tracked exactly, no noise) until done,
+    a 20 N prewarning or t_max; the trajectory carries the guard in its meta."""
+    planner.reset()
+    rows = [[0.0, 0.0, 0.0, 0.0, *true_forces(0.0, 0.0), np.nan]]
+    while planner.stop is None and rows[-1][0] < t_max:
+        u = planner.plan(Trajectory.from_array(np.asarray(rows)))
+        for _ in range(steps_per_plan):
+            t, q = rows[-1][0] + DT, rows[-1][1] + DT * u
+            rows.append([t, q, u, u, *true_forces(q, u), np.nan])
+    outcome = planner.stop.outcome if planner.stop else "timeout"
+    return Trajectory.from_array(np.asarray(rows), outcome=outcome,
+                                 meta={"planner_guard": planner.guard.as_dict()})
+
+
+def peak(traj: Trajectory) -> float:
+    return float(max(np.abs(traj.fx).max(), np.abs(traj.fz).max()))
+
+
+# ---------------------------------------------------------------- Eq. M1
+def test_margin_is_kappa_times_the_one_sided_rms_of_the_errors() -> None:
+    m = ForceMargin(MarginConfig(kappa=2.0, window=4, min_count=3, init_n=1.5, max_n=5.0))
+    assert m.value.tolist() == [1.5, 1.5]  # fewer than min_count errors: init_n
+    # RX under-predicted by 1, 2 (and over-predicted once: ignored), RZ exact
+    m.observe(np.array([[11.0, 3.0], [12.0, 3.0], [9.0, 3.0]]),
+              np.array([[10.0, 3.0], [10.0, 3.0], [10.0, 3.0]]))
+    want = 2.0 * np.sqrt((1.0 + 4.0 + 0.0) / 3.0)
+    np.testing.assert_allclose(m.value, [want, 0.0])
+    m.observe(np.array([[30.0, 3.0]]), np.array([[10.0, 3.0]]))
+    assert m.value[0] == 5.0  # the ceiling
+    m.observe(np.full((4, 2), 10.0), np.full((4, 2), 10.0))  # right again: the window forgets
+    assert m.value.tolist() == [0.0, 0.0]
+
+
+def test_check_takes_the_zero_crossing_at_or_below_u_star() -> None:
+    c = np.array([0.5, 1.5, 2.5, 3.5])
+    assert largest_safe(c, np.array([-3.0, -2.0, -1.0, -0.5]), 3.2) == 3.2
+    assert largest_safe(c, np.array([-3.0, -1.0, 1.0, 2.0]), 3.2) == pytest.approx(2.0)
+    assert largest_safe(c, np.array([-3.0, -1.0, 1.0, 2.0]), 1.8) == 1.8
+    assert largest_safe(c, np.array([0.1, 1.0, 2.0, 3.0]), 3.2) is None
+
+
+def test_prediction_of_the_issued_command_is_interpolated_in_v0() -> None:
+    v0 = np.array([2.0, 1.0, 1.0, 3.0])
+    f = np.stack([np.full((5, 2), x * 10.0) for x in v0])
+    np.testing.assert_allclose(first_period_forces(v0, f, 2.5), np.full((5, 2), 25.0))
+    assert first_period_forces(v0, f, 0.0) is None
+
+
+def test_tightened_barrier_is_the_barrier_at_zero_margin() -> None:
+    b = BarrierCritic(PlannerConfig().cost.barrier)
+    f = torch.linspace(0.0, 25.0, 60, dtype=torch.float64).reshape(10, 3, 2)
+    torch.testing.assert_close(b.tightened(f, torch.zeros(2, dtype=torch.float64)),
+                               b.sample_costs(type("R", (), {"forces": f, "margin": None})()))
+    lim = b.tightened(torch.tensor([[[18.0, 0.0]]], dtype=torch.float64),
+                      torch.tensor([2.0, 0.0], dtype=torch.float64))
+    assert float(lim) == pytest.approx(8.0 + 10.0)  # 18 N is the limit 20 - 2: full cost
+
+
+# ---------------------------------------------------------------- closed loop
+@pytest.mark.parametrize("offset", [1.0, 2.0, 3.0])
+def test_margin_grows_with_the_models_measured_error(offset: float) -> None:
+    """F_RX under-predicted by a known offset: Eq. M1 measures exactly kappa * offset."""
+    planner = Planner(PlantModel(offset), None, config(**{"safety.margin.max_n": 10.0,
+                                                          "safety.margin.kappa": 2.0}))
+    traj = peel(planner, t_max=5.0)
+    assert planner.margin.value[0] == pytest.approx(2.0 * offset, abs=1e-6)
+    assert planner.margin.value[1] == pytest.approx(0.0, abs=1e-6)
+    assert traj.meta["planner_guard"]["margin_last_n"][0] == pytest.approx(2.0 * offset,
+                                                                           abs=1e-3)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_wrong_model_trips_the_prewarning_without_the_guard_and_not_with_it(seed: int) -> None:
+    """A model 5.5 N under its plant: the planner without the guard runs into the 20 N
+    prewarning; with it (margin min(6, 1.5 x 5.5) = 6 N), on the same seeds, the peel finishes
+    under the limit."""
+    cfg = config(**{"mppi.seed": seed})
+    bare = peel(Planner(PlantModel(5.5), None, cfg.replace(**UNGUARDED)))
+    guarded = peel(Planner(PlantModel(5.5), None, cfg))
+    assert bare.outcome == "safety_stop" and peak(bare) >= 20.0
+    assert guarded.outcome == "done" and peak(guarded) < 20.0
+    assert guarded.meta["planner_guard"]["margin_max_n"][0] == pytest.approx(6.0)
+    assert guarded.meta["planner_guard"]["commands_reduced"] >= 1
+
+
+def test_correct_model_margin_shrinks_and_command_is_todays() -> None:
+    """An exact model: the margin falls from init_n to 0 and every command equals the
+    unguarded planner's within 0.1 mm/s: the check never binds below the limit and the
+    slowest sequence gets a weight that matters only where the plan is near u_min already
+    (here the last 0.5 s: 0.50 against 0.58 mm/s; before that within 0.04 mm/s)."""
+    cfg = config(**{"mppi.seed": 4})
+    guarded = peel(Planner(PlantModel(0.0), None, cfg))
+    bare = peel(Planner(PlantModel(0.0), None, cfg.replace(**UNGUARDED)))
+    g = guarded.meta["planner_guard"]
+    assert g["margin_max_n"][0] == pytest.approx(1.0) and g["margin_last_n"] == [0.0, 0.0]
+    assert g["fallbacks"] == 0 and g["commands_reduced"] == 0
+    n = min(len(guarded), len(bare))
+    np.testing.assert_allclose(guarded.u[:n], bare.u[:n], atol=0.1)
+    assert abs(guarded.t_cpl - bare.t_cpl) <= 0.5
+    assert guarded.outcome == bare.outcome == "done"
+
+
+def test_every_sample_unsafe_sends_the_fallback_and_counts_it() -> None:
+    """A model that predicts 25 N whatever the speed: no sample is safe, the fallback goes out
+    instead of the weighted mean, and the trajectory meta counts it."""
+    planner = Planner(PlantModel(fx=25.0), None, config(**{"safety.fallback_mmps": 0.0}))
+    traj = peel(planner, t_max=1.0)
+    assert np.all(traj.u[:-1] == 0.0)
+    assert planner.last["fallback"] and planner.last["u_star"] >= 0.5
+    g = traj.meta["planner_guard"]
+    assert g["fallbacks"] == g["plans"] == g["all_samples_unsafe"] >= 2
+    assert float(planner.U.max()) == pytest.approx(0.5)  # the next plan starts from u_min
+
+
+def test_control_loop_logs_the_fallback_and_exposes_the_margin() -> None:
+    cfg = config()
+    loop = ControlLoop(cfg, PlantModel(fx=25.0), seed=0)
+    answers = [loop.on_sample(StateSample(k * 100_000_000, 0, 0.0, 0.0, 4.0, 3.0))
+               for k in range(6)]
+    planned = [a for a in answers if a is not None]
+    assert [a.u_mmps for a in planned] == [0.0, 0.0]
+    assert "guard fallback" in planned[1].note and "sent 0.00 mm/s" in planned[1].note
+    assert loop.guard["fallbacks"] == 2 and loop.margin_n == pytest.approx(1.0)
+    stop = loop.on_sample(StateSample(600_000_000, 0, 0.0, 0.0, 21.0, 3.0))
+    assert stop is not None and "guard: 0 of 2 commands reduced" in stop.note
+    assert "2 fallbacks" in stop.note
+
+
+def test_the_slowest_sequence_is_weighted_with_the_samples() -> None:
+    cfg = config(**{"mppi.n_samples": 6})
+    planner = Planner(PlantModel(), Cost(cfg.cost), cfg)
+    planner.plan(Trajectory.from_array(np.array([[0.0, 0, 0, 0, 4.0, 3.0, np.nan]])))
+    v = planner.last["v"]
+    assert v.shape == (7, 5) and torch.all(v[-1] == 0.5)
+    assert planner.last["omega"].shape == (7,)
+    off = Planner(PlantModel(), Cost(cfg.cost), cfg.replace(**{"safety.null_sample": False}))
+    off.plan(Trajectory.from_array(np.array([[0.0, 0, 0, 0, 4.0, 3.0, np.nan]])))
+    assert off.last["v"].shape == (6, 5)
+
+
+def test_margin_widens_back_once_the_model_is_right() -> None:
+    """Wrong by 2 N, then (model swapped) right: the margin rises to 2 x 2 N and falls back to
+    0 once the window (20 errors = 4 control periods) holds only the right model's errors."""
+    planner = Planner(PlantModel(2.0), None, config(**{"safety.margin.kappa": 2.0}))
+    rows = [[0.0, 0.0, 0.0, 0.0, *true_forces(0.0, 0.0), np.nan]]
+    margins = []
+    for k in range(10):
+        if k == 4:
+            planner.set_dynamics(PlantModel(0.0))
+        u = planner.plan(Trajectory.from_array(np.asarray(rows)))
+        margins.append(float(planner.last["margin"][0]))
+        for _ in range(5):
+            t, q = rows[-1][0] + DT, rows[-1][1] + DT * u
+            rows.append([t, q, u, u, *true_forces(q, u), np.nan])
+    assert margins[1:5] == pytest.approx([4.0] * 4)
+    assert margins[5] < 4.0 and margins[9] == pytest.approx(0.0)
