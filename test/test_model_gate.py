@@ -133,6 +133,7 @@ def test_the_learner_reports_a_refused_update_as_skipped(truth: ForcePredictor, 
 
     init = save_checkpoint(tmp_path / "init.safetensors", truth)
     values = validate(SPECS, {"node.init_model": str(init), "node.out_dir": str(tmp_path / "m"),
+                              "gate.holdout": 0.3, "maml.optimizer": "sgd",
                               "maml.beta": 50.0, "maml.meta_steps": 3, "maml.support_slices": 8,
                               "maml.query_slices": 8, "maml.eval_slices": 8})
     learner = OnlineLearner(values)

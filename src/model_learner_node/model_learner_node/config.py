@@ -57,9 +57,9 @@ MAML_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("maml.slice_len", int, 0,
               "samples per slice (Fig. 6); 0 = the model's history h + 1", min=0),
     ParamSpec("maml.inner_steps", int, 1, "gradient steps of Eq. 26 per task", min=1),
-    ParamSpec("maml.meta_steps", int, 5, "meta steps (Eq. 27) per update", min=1),
+    ParamSpec("maml.meta_steps", int, 20, "meta steps (Eq. 27) per update", min=1),
     ParamSpec("maml.first_order", bool, False, "drop second-order terms (FOMAML)"),
-    ParamSpec("maml.optimizer", str, "sgd", "meta step rule: sgd = Eq. 27, adam = Adam(beta)",
+    ParamSpec("maml.optimizer", str, "adam", "meta step rule: sgd = Eq. 27, adam = Adam(beta)",
               choices=("sgd", "adam")),
     ParamSpec("maml.grad_clip", float, 0.0, "clip the meta-gradient norm; 0 = off", min=0.0),
     ParamSpec("maml.task_reduce", str, "sum",
@@ -73,7 +73,7 @@ MAML_SPECS: tuple[ParamSpec, ...] = (
 #: Parameters of the ``gate:`` group: the held-out check of each update before it is offered
 #: (model_learner_node.gate; not in the paper, docs/model.md "A model earns its swap").
 GATE_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("gate.holdout", float, 0.3,
+    ParamSpec("gate.holdout", float, 0.0,
               "fraction of the newest peel's samples (its end) kept out of the update and used "
               "to check it; 0 = offer every update unchecked (the paper's Algorithm 1)",
               min=0.0, max=0.9),

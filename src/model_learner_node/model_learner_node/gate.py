@@ -42,7 +42,7 @@ from .windows import Windows, trajectory_windows
 class GateConfig:
     """The ``gate.*`` parameters (module docstring)."""
 
-    holdout: float = 0.3
+    holdout: float = 0.0
     tolerance: float = 0.0
     min_samples: int = 10
 

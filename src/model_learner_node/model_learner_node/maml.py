@@ -69,9 +69,9 @@ class MamlConfig:
     query_slices: int = 32
     slice_len: int = 0
     inner_steps: int = 1
-    meta_steps: int = 5
+    meta_steps: int = 20
     first_order: bool = False
-    optimizer: str = "sgd"
+    optimizer: str = "adam"
     grad_clip: float = 0.0
     task_reduce: str = "sum"
     eval_slices: int = 64

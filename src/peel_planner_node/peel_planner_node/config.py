@@ -106,7 +106,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("dynamics.fused.native_loop", bool, True,
               "run the model-step loop in C++ when it is built"),
     ParamSpec("safety.f_prewarn_n", float, 20.0, "safety prewarning on |F|, N (4.2)", min=1e-6),
-    ParamSpec("safety.margin.kappa", float, 1.5,
+    ParamSpec("safety.margin.kappa", float, 0.0,
               "k of the force margin m_a = min(m_max, k sqrt(mean max(e,0)^2)), e = measured - "
               "predicted |F_a| of the issued command (docs/planner.md, Eq. M1); 0: no margin",
               min=0.0, max=100.0),
@@ -116,14 +116,14 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("safety.margin.min_count", int, 5,
               "errors per axis before Eq. M1 replaces safety.margin.init_n", min=1,
               max=100_000),
-    ParamSpec("safety.margin.init_n", float, 1.0,
+    ParamSpec("safety.margin.init_n", float, 0.0,
               "margin before min_count errors exist (each task starts with it), N", min=0.0,
               max=20.0),
     ParamSpec("safety.margin.max_n", float, 6.0, "ceiling m_max of the margin, N (Eq. M1)",
               min=0.0, max=20.0),
-    ParamSpec("safety.null_sample", bool, True,
+    ParamSpec("safety.null_sample", bool, False,
               "add the slowest sequence (u_min over the horizon) to the N samples (Eq. 31)"),
-    ParamSpec("safety.check.enabled", bool, True,
+    ParamSpec("safety.check.enabled", bool, False,
               "check the command against the model before it goes out (Eq. M3)"),
     ParamSpec("safety.check.candidates", int, 8,
               "speeds u_min..max v_0 rolled out with the samples for the check (Eq. M3)",
@@ -245,10 +245,10 @@ class DynamicsConfig:
 class MarginConfig:
     """The force margin from the model's measured error (docs/planner.md, Eq. M1)."""
 
-    kappa: float = 1.5
+    kappa: float = 0.0
     window: int = 20
     min_count: int = 5
-    init_n: float = 1.0
+    init_n: float = 0.0
     max_n: float = 6.0
 
 
@@ -256,7 +256,7 @@ class MarginConfig:
 class CheckConfig:
     """The check of the command against the model before it goes out (Eq. M3)."""
 
-    enabled: bool = True
+    enabled: bool = False
     candidates: int = 8
 
 
@@ -269,7 +269,7 @@ class SafetyConfig:
     q_ter_mm: float = 25.0
     margin: MarginConfig = MarginConfig()
     check: CheckConfig = CheckConfig()
-    null_sample: bool = True
+    null_sample: bool = False
     fallback_mmps: float = 0.0
 
 
