@@ -21,6 +21,9 @@ torch.set_num_threads(1)
 #: The guard switched off: the planner as it is without Eq. M1-M3.
 UNGUARDED = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
              "safety.null_sample": False, "safety.check.enabled": False}
+#: The guard on with the values of docs/planner.md (the shipped defaults have it off).
+GUARDED = {"safety.margin.kappa": 1.5, "safety.margin.init_n": 1.0,
+           "safety.null_sample": True, "safety.check.enabled": True}
 DT = 0.1
 
 
@@ -43,7 +46,14 @@ class PlantModel:
 
 
 def config(**flat) -> PlannerConfig:
-    return PlannerConfig().replace(**{"mppi.dtype": "float64", **flat})
+    """The guarded planner (GUARDED) in float64, with ``flat`` on top."""
+    return PlannerConfig().replace(**{"mppi.dtype": "float64", **GUARDED, **flat})
+
+
+def test_the_shipped_planner_has_the_guard_off() -> None:
+    safety = PlannerConfig().safety
+    assert (safety.margin.kappa, safety.margin.init_n, safety.null_sample,
+            safety.check.enabled) == (0.0, 0.0, False, False)
 
 
 def peel(planner: Planner, steps_per_plan: int = 5, t_max: float = 30.0) -> Trajectory:

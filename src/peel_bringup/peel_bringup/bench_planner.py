@@ -293,6 +293,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 #: The guard of the force limit switched off (Eq. M1-M3): the planner as it is without it.
 UNGUARDED: dict[str, Any] = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
                              "safety.null_sample": False, "safety.check.enabled": False}
+#: The guard of the force limit on, with the values of docs/planner.md (the defaults are off).
+GUARDED: dict[str, Any] = {"safety.margin.kappa": 1.5, "safety.margin.init_n": 1.0,
+                           "safety.null_sample": True, "safety.check.enabled": True}
 
 #: --cost-study variants: peel with one default undone (an ablation of today's defaults, see
 #: docs/planner.md), peel configured as pytorch_mppi's algorithm, and two more iterations
@@ -319,6 +322,7 @@ STUDY_VARIANTS: dict[str, dict[str, Any]] = {
     "noise_ar1_joint": {"mppi.noise_correlation": 0.8, "mppi.control_term": "joint"},
     # the planner without the guard of the force limit (docs/planner.md, Eq. M1-M3)
     "peel_unguarded": UNGUARDED,
+    "peel_guarded": GUARDED,
 }
 
 

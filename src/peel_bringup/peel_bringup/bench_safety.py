@@ -3,7 +3,8 @@
 Every arm plans with the same model (the shipped checkpoint, not updated: the guard is a
 planner property) and the same cost, N and H on the same peels:
 
-* ``peel``: the planner as configured (the guard of the force limit on, Eq. M1-M3);
+* ``peel``: the planner with the guard of the force limit on (Eq. M1-M3, the values of
+  docs/planner.md; the shipped defaults have it off);
 * ``peel_unguarded``: the same with the guard off (no margin, no slowest sequence, no check);
 * ``pytorch_mppi``: pytorch_mppi 0.9.1 over the same model and critics (``bench_planner``).
 
@@ -37,7 +38,7 @@ from peel_planner_node.cost import Cost, episode_cost_terms
 from peel_planner_node.dynamics import learned_dynamics
 from peel_planner_node.mppi import Planner
 
-from .bench_planner import UNGUARDED, TorchMppiPolicy, load_model, parse_sets, peak_force
+from .bench_planner import GUARDED, UNGUARDED, TorchMppiPolicy, load_model, parse_sets, peak_force
 
 ARMS: tuple[str, ...] = ("peel", "peel_unguarded", "pytorch_mppi")
 
@@ -46,7 +47,7 @@ def make_policy(arm: str, pred: Any, base: PlannerConfig, pseed: int) -> Any:
     """The planner of one arm with planner seed ``pseed``."""
     if arm == "pytorch_mppi":
         return TorchMppiPolicy(pred, Cost(base.cost), base, seed=pseed)
-    extra = UNGUARDED if arm == "peel_unguarded" else {}
+    extra = UNGUARDED if arm == "peel_unguarded" else GUARDED
     cfg = base.replace(**{**extra, "mppi.seed": pseed})
     return Planner(learned_dynamics(pred, cfg.dynamics), Cost(cfg.cost), cfg)
 
