@@ -21,6 +21,10 @@ from peel_msgs_py import bagread, topics
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 OVERRIDE = """
+peel_bringup:
+  ros__parameters:
+    graph:
+      alone_wait_s: 0.5   # a domain of its own: a short look for another graph
 peel_planner_node:
   ros__parameters:
     mppi:

@@ -63,6 +63,7 @@ peel_bringup:
   ros__parameters:
     graph:
       final_model_wait_s: 120.0
+      alone_wait_s: 0.5   # a domain of its own: a short look for another graph
 """
 
 
