@@ -112,11 +112,9 @@ class Stranger:
             msg.twist.linear.x = value
             self.cmd.publish(msg)
 
-    def send_bad_wrench_and_trajectory(self) -> None:
+    def send_bad_wrench(self) -> None:
+        """A NaN wrench stamped like the last sample seen."""
         from geometry_msgs.msg import WrenchStamped
-
-        from peel_msgs_py.ros.messages import trajectory_msg
-        from peel_msgs_py.trajectory import Trajectory
 
         t, frame = self.stamps[-1]
         bad = WrenchStamped()
@@ -124,6 +122,12 @@ class Stranger:
         bad.header.frame_id = frame
         bad.wrench.force.x = float("nan")
         self.wrench.publish(bad)
+
+    def send_bad_wrench_and_trajectory(self) -> None:
+        from peel_msgs_py.ros.messages import trajectory_msg
+        from peel_msgs_py.trajectory import Trajectory
+
+        self.send_bad_wrench()
         n = 5
         traj = Trajectory(t=np.arange(n) * 0.1, q=np.full(n, np.nan), v=np.zeros(n),
                           u=np.zeros(n), fx=np.zeros(n), fz=np.zeros(n), psi=np.zeros(n),
@@ -174,6 +178,12 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         _wait(lambda: "clamped a /peel/cmd_vel" in sim_log.read_text(), 300,
               "the simulator to execute the stranger's command")
         stranger.resume_planner()
+        # the NaN wrench sent while the planner was stopped can leave its reader's queue
+        # (keep last 10) before it wakes: send one more and wait for the planner's drop line
+        plan_log = tmp_path / "run" / "logs" / "peel_planner_node.log"
+        stranger.send_bad_wrench()
+        _wait(lambda: "dropped a /peel/wrench message" in plan_log.read_text(), 300,
+              "the planner to drop the NaN wrench")
         rc = proc.wait(timeout=400)
     finally:
         stranger.close()
