@@ -22,11 +22,23 @@ from typing import Any
 import numpy as np
 
 from .errors import PeelError
+from .params import ParamSpec
 
 #: Seconds between two log lines about drops of the same topic and field.
 LOG_EVERY_S = 5.0
 #: The Nachi controller's accepted command range, mm/s (``V``, docs/nachi_protocol.md).
 CMD_MIN_MMPS, CMD_MAX_MMPS = 0.0, 20.0
+
+
+def speed_limit_specs(group: str, action: str) -> tuple[ParamSpec, ParamSpec]:
+    """The ``<group>.u_min_mmps`` / ``u_max_mmps`` parameters of a bridge: the speeds it
+    ``action`` (e.g. "executed", "forwarded as V"), inside the controller's 0-20 mm/s."""
+    bounds = {"min": CMD_MIN_MMPS, "max": CMD_MAX_MMPS}
+    return (ParamSpec(f"{group}.u_min_mmps", float, CMD_MIN_MMPS,
+                      f"lowest speed {action}, mm/s (lower commands are clamped)", **bounds),
+            ParamSpec(f"{group}.u_max_mmps", float, CMD_MAX_MMPS,
+                      f"highest speed {action}, mm/s (the Nachi controller's limit; higher "
+                      "commands are clamped)", **bounds))
 
 
 def first_nonfinite(values: Mapping[str, float]) -> str | None:

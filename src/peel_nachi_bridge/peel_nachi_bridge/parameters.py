@@ -13,7 +13,7 @@ run time: the link and the task sequence are fixed when the node starts. The phy
 from __future__ import annotations
 
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
-from peel_msgs_py.wire import CMD_MAX_MMPS, CMD_MIN_MMPS
+from peel_msgs_py.wire import speed_limit_specs
 
 NODE_NAME = "peel_nachi_bridge"
 
@@ -46,12 +46,7 @@ SAFETY_SPECS: tuple[ParamSpec, ...] = (
               "consecutive malformed / oversize / non-finite lines that stop a task", min=1),
     ParamSpec("safety.stop_timeout_s", float, 2.0,
               "wall s for DONE after STOP before the link is closed", min=0.01),
-    ParamSpec("safety.u_min_mmps", float, CMD_MIN_MMPS,
-              "lowest speed forwarded as V, mm/s (lower commands are clamped)",
-              min=CMD_MIN_MMPS, max=CMD_MAX_MMPS),
-    ParamSpec("safety.u_max_mmps", float, CMD_MAX_MMPS,
-              "highest speed forwarded as V, mm/s (the controller's limit; higher commands are "
-              "clamped)", min=CMD_MIN_MMPS, max=CMD_MAX_MMPS),
+    *speed_limit_specs("safety", "forwarded as V"),
 )
 
 #: ``node:``: the task sequence, as peel_sim_node's (docs/graph.md).

@@ -10,7 +10,7 @@ at run time: the physics and the task sequence are fixed when the node starts.
 from __future__ import annotations
 
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
-from peel_msgs_py.wire import CMD_MAX_MMPS, CMD_MIN_MMPS
+from peel_msgs_py.wire import speed_limit_specs
 
 from .config import SPECS as LIBRARY_SPECS
 
@@ -35,12 +35,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.min_traj_subscribers", int, 1,
               "wait for this many subscribers of /peel/trajectory before task 1 (learner, "
               "launcher, recorder)", min=0),
-    ParamSpec("node.u_min_mmps", float, CMD_MIN_MMPS,
-              "lowest commanded speed executed, mm/s (lower commands are clamped)",
-              min=CMD_MIN_MMPS, max=CMD_MAX_MMPS),
-    ParamSpec("node.u_max_mmps", float, CMD_MAX_MMPS,
-              "highest commanded speed executed, mm/s (the Nachi controller's limit; higher "
-              "commands are clamped)", min=CMD_MIN_MMPS, max=CMD_MAX_MMPS),
+    *speed_limit_specs("node", "executed"),
     ParamSpec("node.exit_when_done", bool, False,
               "exit after the last task (and its model update); for ros2 launch"),
     ParamSpec("node.effects", list, [""],
