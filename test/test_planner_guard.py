@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from peel_msgs_py.trajectory import Trajectory
-from peel_planner_node.config import MarginConfig, PlannerConfig
+from peel_planner_node.config import GUARDED, UNGUARDED, MarginConfig, PlannerConfig
 from peel_planner_node.control_loop import ControlLoop, StateSample
 from peel_planner_node.cost import BarrierCritic, Cost
 from peel_planner_node.guard import ForceMargin, first_period_forces, largest_safe
@@ -18,12 +18,6 @@ from peel_planner_node.mppi import Planner
 
 torch.set_num_threads(1)
 
-#: The guard switched off: the planner as it is without Eq. M1-M3.
-UNGUARDED = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
-             "safety.null_sample": False, "safety.check.enabled": False}
-#: The guard on with the values of docs/planner.md (the shipped defaults have it off).
-GUARDED = {"safety.margin.kappa": 1.5, "safety.margin.init_n": 1.0,
-           "safety.null_sample": True, "safety.check.enabled": True}
 DT = 0.1
 
 

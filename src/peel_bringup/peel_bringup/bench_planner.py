@@ -37,7 +37,7 @@ from tqdm import tqdm
 from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
-from peel_planner_node.config import PlannerConfig, load_planner_config
+from peel_planner_node.config import GUARDED, UNGUARDED, PlannerConfig, load_planner_config
 from peel_planner_node.cost import Cost, Rollouts, episode_cost_terms
 from peel_planner_node.dynamics import history_window, learned_dynamics
 from peel_planner_node.mppi import Planner, term_influence
@@ -289,13 +289,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "planner_config": base.as_dict(), "cases": list(by.values()),
             "goals": _goals(by, cases), "flop_floor": floor}
 
-
-#: The guard of the force limit switched off (Eq. M1-M3): the planner as it is without it.
-UNGUARDED: dict[str, Any] = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
-                             "safety.null_sample": False, "safety.check.enabled": False}
-#: The guard of the force limit on, with the values of docs/planner.md (the defaults are off).
-GUARDED: dict[str, Any] = {"safety.margin.kappa": 1.5, "safety.margin.init_n": 1.0,
-                           "safety.null_sample": True, "safety.check.enabled": True}
 
 #: --cost-study variants: peel with one default undone (an ablation of today's defaults, see
 #: docs/planner.md), peel configured as pytorch_mppi's algorithm, and two more iterations

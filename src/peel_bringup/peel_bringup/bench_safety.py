@@ -33,12 +33,12 @@ from tqdm import tqdm
 
 from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
-from peel_planner_node.config import PlannerConfig, load_planner_config
+from peel_planner_node.config import GUARDED, UNGUARDED, PlannerConfig, load_planner_config
 from peel_planner_node.cost import Cost, episode_cost_terms
 from peel_planner_node.dynamics import learned_dynamics
 from peel_planner_node.mppi import Planner
 
-from .bench_planner import GUARDED, UNGUARDED, TorchMppiPolicy, load_model, parse_sets, peak_force
+from .bench_planner import TorchMppiPolicy, load_model, parse_sets, peak_force
 
 ARMS: tuple[str, ...] = ("peel", "peel_unguarded", "pytorch_mppi")
 

@@ -241,6 +241,14 @@ class DynamicsConfig:
     fused: FusedConfig = FusedConfig()
 
 
+#: The guard of the force limit (Eq. M1-M3) switched off (the shipped defaults) and on with
+#: the values of docs/planner.md, as ``PlannerConfig.replace`` overrides.
+UNGUARDED: dict[str, Any] = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
+                             "safety.null_sample": False, "safety.check.enabled": False}
+GUARDED: dict[str, Any] = {"safety.margin.kappa": 1.5, "safety.margin.init_n": 1.0,
+                           "safety.null_sample": True, "safety.check.enabled": True}
+
+
 @dataclass(frozen=True)
 class MarginConfig:
     """The force margin from the model's measured error (docs/planner.md, Eq. M1)."""
