@@ -17,11 +17,11 @@ import matplotlib.image as mpimg
 import pytest
 from residual_helpers import generate_tasks, peel, write_bag
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
-from model_learner_node.compensated import CompensatedPredictor
-from model_learner_node.residual.cli import main as residual_main
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.compensated import CompensatedPredictor
 from peel_msgs_py.cliargs import run_main
 from peel_msgs_py.outputs import OutputDir
+from peel_residual.cli import main as residual_main
 from peel_sim_node.example_effects import slipping_axis, vacuum_leak
 
 REPORT_KEYS = {"rmse_before", "rmse_after", "effects", "unexplained", "holdout"}
@@ -101,8 +101,8 @@ def _one_line_error(proc, needle: str) -> None:
 def test_bag_without_the_needed_topics(tmp_path: Path) -> None:
     import ros_msgs as M
 
+    from peel_bag.bag import BagWriter
     from peel_msgs_py import topics as T
-    from peel_msgs_py.bag import BagWriter
 
     with BagWriter(tmp_path / "clock") as bag:
         bag.add_topic(T.CLOCK, T.topic(T.CLOCK).type, [T.topic(T.CLOCK).qos])

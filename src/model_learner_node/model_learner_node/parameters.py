@@ -8,10 +8,11 @@ here: every command that reads a parameter file may load it.)
 
 from __future__ import annotations
 
+from peel_model.config import MODEL_SPECS
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
+from peel_residual.params import RESIDUAL_SPECS
 
-from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, MODEL_SPECS, TRAIN_SPECS
-from .residual.params import RESIDUAL_SPECS
+from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, TRAIN_SPECS
 
 NODE_NAME = "model_learner_node"
 

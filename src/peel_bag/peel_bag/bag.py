@@ -19,7 +19,7 @@ chunk: at most ``flush_interval_s`` seconds (default 1 s) or ``chunk_size`` byte
 chunk flushes (at most once per ``metadata_interval_s``) and at close.
 
 A file without its summary and footer cannot be opened by ``rosbags`` (it checks the end magic);
-:func:`repair_bag` (``peel record --repair BAG``, :mod:`peel_msgs_py.bagrepair`) keeps every
+:func:`peel_bag.bagrepair.repair_bag` (``peel record --repair BAG``) keeps every
 chunk whose CRC holds, drops and reports the others, writes a complete file beside it and
 atomically replaces the original, which it keeps as ``NAME_0.mcap.orig``; then it rewrites
 ``metadata.yaml``.
@@ -47,9 +47,9 @@ from typing import Any
 import yaml
 from mcap.writer import CompressionType, Writer
 
-from .atomic import atomic_write_text
-from .errors import PeelError
-from .topics import QosSpec
+from peel_msgs_py.atomic import atomic_write_text
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.qos import QosSpec
 
 #: rosbag2 metadata version written (Jazzy writes 9).
 BAG_VERSION = 9
@@ -537,9 +537,3 @@ def mcap_is_complete(path: Path) -> bool:
         return False
     return tail[-8:] == _MAGIC and tail[0] == 0x02 and struct.unpack("<Q", tail[1:9])[0] == 20
 
-
-def repair_bag(path: str | os.PathLike[str]) -> Any:
-    """Make a damaged bag readable again: :func:`peel_msgs_py.bagrepair.repair_bag`."""
-    from .bagrepair import repair_bag as repair
-
-    return repair(path)

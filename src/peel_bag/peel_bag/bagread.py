@@ -22,7 +22,7 @@ topic                       arrays
 ``log_ns`` is the recorder's receive time (ns since the epoch); ``task`` is the task index from
 ``header.frame_id`` (``peel_task_<k>``), -1 where the frame id is not of that form. A bag whose recorder was killed
 has no MCAP summary; opening it raises :class:`PeelError` pointing at ``peel record --repair``
-unless ``repair=True`` is passed (which runs :func:`peel_msgs_py.bag.repair_bag` first).
+unless ``repair=True`` is passed (which runs :func:`peel_bag.bagrepair.repair_bag` first).
 """
 
 from __future__ import annotations
@@ -34,12 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from . import topics as T
-from . import units
-from .bag import mcap_is_complete, mcap_path, repair_bag, typestore
-from .codec import join_stamp, task_from_frame_id, trajectory_from_msg
-from .errors import PeelError
-from .trajectory import Trajectory
+from peel_msgs_py import topics as T
+from peel_msgs_py import units
+from peel_msgs_py.codec import join_stamp, task_from_frame_id, trajectory_from_msg
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+
+from .bag import mcap_is_complete, mcap_path, typestore
+from .bagrepair import repair_bag
 
 
 def _check(path: Path, repair: bool) -> None:

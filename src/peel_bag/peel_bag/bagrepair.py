@@ -41,7 +41,9 @@ from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from .atomic import atomic_write_text
+from peel_msgs_py.atomic import atomic_write_text
+from peel_msgs_py.errors import PeelError
+
 from .bag import (
     _LIBRARY,
     _MAGIC,
@@ -53,7 +55,6 @@ from .bag import (
     mcap_path,
     metadata_document,
 )
-from .errors import PeelError
 
 _HEAD = struct.Struct("<BQ")  # record opcode and length
 

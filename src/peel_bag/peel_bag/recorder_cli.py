@@ -8,7 +8,7 @@ Records until ``--duration`` seconds (wall clock) have passed, or until SIGINT /
 closes the bag properly and prints a JSON summary on stdout. A recorder killed with SIGKILL (or
 a power cut) leaves a bag without its summary, a bad disk block a chunk whose CRC fails:
 ``--repair`` turns either into a complete bag holding every chunk whose CRC holds, reports the
-dropped ones and counts the messages kept (:mod:`peel_msgs_py.bagrepair`). A write that fails
+dropped ones and counts the messages kept (:mod:`peel_bag.bagrepair`). A write that fails
 while recording (a full disk) ends the recording with one line naming the bag, the error and
 the repair command, and exit status :data:`RECORDING_FAILED` (4).
 """
@@ -21,10 +21,12 @@ import signal
 import sys
 import time
 
+from peel_msgs_py import held_signals
+from peel_msgs_py.cliargs import ArgumentParser, positive_float, positive_int, run_main
+from peel_msgs_py.topics import RECORDED_TOPICS, topic
+
 from . import bag as bagmod
-from . import held_signals
-from .cliargs import ArgumentParser, positive_float, positive_int, run_main
-from .topics import RECORDED_TOPICS, topic
+from .bagrepair import repair_bag
 
 #: Exit status of a recording that could not be written (the bag is cut short).
 RECORDING_FAILED = 4
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``peel record``; returns the exit status."""
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
     if args.repair:
-        result = bagmod.repair_bag(args.repair)
+        result = repair_bag(args.repair)
         for d in result.chunks_dropped:
             lost = "unknown" if d.messages is None else d.messages
             print(f"peel record: warning: dropped the chunk at byte {d.offset} ({d.reason}); "
@@ -121,6 +123,15 @@ def main(argv: list[str] | None = None) -> int:
 def run(argv: list[str] | None = None) -> int:
     """``main`` with bad input reported as one line and exit status 2 (``python -m`` use)."""
     return run_main("peel record", main, argv)
+
+
+def node_main(argv: list[str] | None = None) -> int:
+    """Console script ``peel_recorder`` for ``ros2 run``: same options as ``peel record``
+    (``--ros-args`` ignored)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--ros-args" in args:
+        args = args[: args.index("--ros-args")]
+    return run(args)
 
 
 if __name__ == "__main__":

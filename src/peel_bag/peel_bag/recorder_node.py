@@ -8,10 +8,10 @@ record`` does without ``--use-sim-time``. A topic's channel is registered once i
 are known (a timer polls the graph, a first message forces it): the bag holds the QoS profiles
 they offer and the type hash (RIHS01) they announce, both from their endpoint info; the schema
 text is the Jazzy definition from ``rosbags``' typestore. Chunks are flushed by size and by
-age (:class:`~peel_msgs_py.bag.BagWriter`); the same timer ticks the writer so that a quiet
+age (:class:`~peel_bag.bag.BagWriter`); the same timer ticks the writer so that a quiet
 topic's open chunk still reaches the disk within ``flush_interval_s``. A write that fails (a full
 disk) stops the recording: :func:`record` raises the writer's
-:class:`~peel_msgs_py.bag.BagWriteError` (bag named, repair command included).
+:class:`~peel_bag.bag.BagWriteError` (bag named, repair command included).
 
 The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' own depth is 10):
 a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
@@ -33,9 +33,10 @@ from typing import Any
 import rclpy
 from rclpy.node import Node
 
+from peel_msgs_py.ros.qos import profile_to_bag
+from peel_msgs_py.topics import qos_profile, topic
+
 from .bag import BagWriteError, BagWriter, message_definition
-from .ros.qos import profile_to_bag
-from .topics import qos_profile, topic
 
 NODE_NAME = "peel_recorder"
 #: Period of the writer tick (s): graph poll, time-based chunk flushes, metadata refreshes.
@@ -128,7 +129,7 @@ def drain(node: RecorderNode, limit_s: float = DRAIN_LIMIT_S) -> int:
 def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
            stop: Any) -> None:
     """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``; a write
-    that failed ends it with the writer's :class:`~peel_msgs_py.bag.BagWriteError`."""
+    that failed ends it with the writer's :class:`~peel_bag.bag.BagWriteError`."""
     t0 = time.monotonic()
     rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = None
@@ -149,16 +150,3 @@ def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
     if writer.failure is not None:
         raise writer.failure
 
-
-def main(argv: list[str] | None = None) -> int:
-    """Console script for ``ros2 run``: same options as ``peel record`` (``--ros-args`` ignored)."""
-    from .recorder_cli import run
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--ros-args" in args:
-        args = args[: args.index("--ros-args")]
-    return run(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

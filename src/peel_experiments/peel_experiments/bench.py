@@ -14,12 +14,12 @@ from peel_msgs_py.errors import PeelError
 TARGETS: dict[str, tuple[str, str]] = {
     "sim": ("peel_sim_node.bench:main", "simulator throughput against raw stepSimulation (docs/simulator.md)"),
     "model": ("model_learner_node.bench:main", "training samples/s and inference latency (docs/model.md)"),
-    "planner": ("peel_bringup.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
-    "safety": ("peel_bringup.bench_safety:main",
+    "planner": ("peel_experiments.bench_planner:main", "plan() latency and episode cost vs pytorch_mppi"),
+    "safety": ("peel_experiments.bench_safety:main",
                "prewarnings and peak forces per plant level, guarded planner vs unguarded vs pytorch_mppi"),
     "ros": ("peel_msgs_py.ros.bench:main", "rclpy pub/sub and service round trips between two processes"),
-    "nachi": ("peel_nachi_bridge.bench:main", "STOP delay of the Nachi bridge on a force spike"),
-    "nachi-graph": ("peel_bringup.bench_nachi:main",
+    "nachi": ("peel_nachi_emulator.bench:main", "STOP delay of the Nachi bridge on a force spike"),
+    "nachi-graph": ("peel_experiments.bench_nachi:main",
                     "cost per task, simulator bridge vs Nachi bridge on the emulator, same seed"),
 }
 

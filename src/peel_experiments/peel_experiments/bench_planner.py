@@ -47,9 +47,9 @@ CASES: tuple[tuple[int, int], ...] = ((50, 5), (100, 5), (1000, 10))
 
 def load_model() -> tuple[Any, dict[str, Any]]:
     """The shipped checkpoint, else a fresh ``ours`` ForcePredictor (seed 0)."""
-    from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
-    from model_learner_node.config import ModelConfig
-    from model_learner_node.predictor import ForcePredictor
+    from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+    from peel_model.config import ModelConfig
+    from peel_model.predictor import ForcePredictor
 
     try:
         path = shipped_checkpoint()

@@ -8,7 +8,7 @@
 * ``baseline1``: the model is never updated (the original MPPI);
 * ``baseline2``: after every peel the model is retrained on all peels so far
   (:class:`model_learner_node.baselines2.HistoryRetrainer`);
-* ``oracle``: the same MPPI with the plant's true dynamics (:mod:`peel_bringup.oracle`).
+* ``oracle``: the same MPPI with the plant's true dynamics (:mod:`peel_experiments.oracle`).
 
 Same substrates for every method: task k of seed s uses plant parameters drawn by
 ``sample_params(cfg, default_rng([s, 0, k]), "plant")``, sensor-noise seed and planner noise seed
@@ -245,8 +245,8 @@ def run_job(method: str, seed: int, setup: Setup,
     """``setup.tasks`` consecutive peels of one method on the substrates of one seed."""
     import torch
 
-    from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
     from model_learner_node.replay import ReplayPool
+    from peel_model.checkpoint import load_checkpoint, save_checkpoint
     from peel_planner_node.config import PlannerConfig
     from peel_planner_node.cost import Cost, episode_cost
     from peel_sim_node.config import load_sim_config

@@ -157,10 +157,10 @@ def _effects(specs: list[str]) -> tuple[str, ...]:
 
 def _checkpoint(path: str | None) -> str:
     if path is None:
-        from model_learner_node.checkpoint import shipped_checkpoint
+        from peel_model.checkpoint import shipped_checkpoint
 
         return str(shipped_checkpoint())
-    from model_learner_node.checkpoint import checkpoint_paths, read_checkpoint_config
+    from peel_model.checkpoint import checkpoint_paths, read_checkpoint_config
 
     st_path, js_path = checkpoint_paths(path)
     if not st_path.is_file():

@@ -1,6 +1,6 @@
 """``peel experiment grid``: the experiment across plant severity levels and sequences, one report.
 
-For every (level, sequence) cell, :func:`peel_bringup.experiment.run_experiment` peels ``tasks``
+For every (level, sequence) cell, :func:`peel_experiments.experiment.run_experiment` peels ``tasks``
 substrates per method and seed (its own ``results.json``, Fig. 11, Table 1 in ``OUT/<cell>/``;
 a cell whose ``results.json`` was made with the same settings is reused, so an interrupted grid
 resumes). Then one summary: ``summary.json``, ``summary.md``, ``headroom.png`` (headroom closed

@@ -1,6 +1,6 @@
 """Planner cost and safety margin per task, before and after a correction (docs/residual.md).
 
-    python -m peel_bringup.residual_compare --before RUN BAG --after RUN BAG --out DIR
+    python -m peel_experiments.residual_compare --before RUN BAG --after RUN BAG --out DIR
                                             [--force] [--label-before TEXT] [--label-after TEXT]
 
 ``RUN`` is a ``peel graph --out`` directory (its ``summary.json`` holds J of Eq. 3 per task),
@@ -36,7 +36,7 @@ def f_prewarn_n() -> float:
 
 def run_tasks(run: Path, bag: Path) -> list[dict[str, Any]]:
     """Per task: J, outcome, T_cpl, model version, peak |F|, safety margin."""
-    from peel_msgs_py.bagread import read_trajectories
+    from peel_bag.bagread import read_trajectories
 
     try:
         summary = json.loads((run / "summary.json").read_text())
@@ -120,7 +120,7 @@ def compare(b: list[dict[str, Any]], a: list[dict[str, Any]], args: argparse.Nam
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(prog="python -m peel_bringup.residual_compare",
+    p = ArgumentParser(prog="python -m peel_experiments.residual_compare",
                        description=__doc__.split("\n\n")[0])
     p.add_argument("--before", nargs=2, type=Path, required=True, metavar=("RUN", "BAG"))
     p.add_argument("--after", nargs=2, type=Path, required=True, metavar=("RUN", "BAG"))

@@ -58,8 +58,8 @@ from peel_msgs_py.outputs import OutputDir
 
 #: Node names, and the modules / console scripts that run them.
 NODES = {"peel_sim_node": "peel_sim_node", "peel_planner_node": "peel_planner_node",
-         "model_learner_node": "model_learner_node", "peel_msgs_py.recorder_cli": "recorder",
-         "peel_msgs_py.recorder_node": "recorder", "peel_recorder": "recorder"}
+         "model_learner_node": "model_learner_node", "peel_bag.recorder_cli": "recorder",
+         "peel_recorder": "recorder"}
 LAUNCHER = "peel_graph"
 TASK_LINE = re.compile(r"^task (\d+)/(\d+): (\S+)")
 

@@ -1,19 +1,19 @@
 """Checkpoints of the forward model: ``<name>.safetensors`` + ``<name>.json`` (never a pickle).
 
 The safetensors file holds every parameter and normalisation buffer of a
-:class:`~model_learner_node.predictor.ForcePredictor`; the JSON beside it holds what is needed to
+:class:`~peel_model.predictor.ForcePredictor`; the JSON beside it holds what is needed to
 rebuild and check it: format name and version, architecture and its hyper-parameters (h, ...),
 the normalisation in readable form, units, one entry per tensor (shape, dtype), the size and
 SHA-256 of the safetensors file, and free ``meta`` (dataset hash, metrics, training settings).
 
-A model with a compensation term (:class:`~model_learner_node.compensated.CompensatedPredictor`,
+A model with a compensation term (:class:`~peel_model.compensated.CompensatedPredictor`,
 written by ``peel residual``) is the same pair: the safetensors file holds f_theta exactly as a
 plain checkpoint does, the JSON has ``format_version`` 2 and a ``compensation`` block with the
 named physical terms and their coefficients. The same block is sealed into the safetensors
 header's metadata (``compensation``, canonical JSON), so the file's SHA-256 -- the model's
-identity for the planner's versions (:mod:`~model_learner_node.versions`) -- covers the terms
+identity for the planner's versions (:mod:`~peel_model.versions`) -- covers the terms
 too, and a JSON whose terms were edited is refused. The terms' formulas come from
-:mod:`~model_learner_node.effect_terms` by family name; nothing in the file is executed. A reader
+:mod:`~peel_model.effect_terms` by family name; nothing in the file is executed. A reader
 of version 1 refuses such a file instead of silently dropping the terms.
 
 :func:`load_checkpoint` is strict: it refuses a missing or malformed JSON, another format or

@@ -2,7 +2,7 @@
 
 The paper's conclusion: the model "can be corrected online by adding a compensation term".
 ``peel residual`` (docs/residual.md) finds physical effects the model lacks and adds them here as
-named terms g = sum_k c_k phi_k(q, v, t, F) (:mod:`~model_learner_node.effect_terms`):
+named terms g = sum_k c_k phi_k(q, v, t, F) (:mod:`~peel_model.effect_terms`):
 
 * **one model step** (Eq. 1): the terms' contribution is removed from the measured force history
   (so f_theta sees forces of the kind it was trained on), f_theta predicts the effect-free force,
@@ -21,7 +21,7 @@ f_theta's parameters through ``functional_call`` / ``parameters()`` with the ter
 terms need the sample times: :meth:`predict` takes ``t_next`` (time of sample k+1 in the task,
 s); without it they contribute nothing. The module is ``ForcePredictor``-compatible (``h``,
 ``predict``, ``forward``, ``out_std``, ``psi_from_force``, ...) and is saved by
-:func:`~model_learner_node.checkpoint.save_checkpoint` as f_theta's safetensors plus the terms
+:func:`~peel_model.checkpoint.save_checkpoint` as f_theta's safetensors plus the terms
 in the JSON.
 """
 

@@ -8,7 +8,7 @@ channel with fitted coefficients c_k. Force terms add to a force channel, veloci
 robot's speed response:
 
 * force channels ``fx``/``fz`` (N): F = f_theta(x with the terms removed, v) + sum_k c_k phi_k
-  (:class:`~model_learner_node.compensated.CompensatedPredictor`); phi_k is a function of a
+  (:class:`~peel_model.compensated.CompensatedPredictor`); phi_k is a function of a
   sample's row (q mm, v mm/s, t s, the previous row's v, the other channel's force);
 * velocity channel ``v`` (mm/s): v_{k+1} = u_k + sum_k c_k phi_k(u_k, v_k), the correction of
   Eq. 2's mean v = u that the planner assumes (actuator lag, scale, offset).

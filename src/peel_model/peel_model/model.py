@@ -1,6 +1,6 @@
 """Network bodies of the forward model f_theta(x_t, v_t) (paper 3.1, Fig. 4-5) and baselines (4.3).
 
-All modules here work on *normalised* tensors; :class:`~model_learner_node.predictor.ForcePredictor`
+All modules here work on *normalised* tensors; :class:`~peel_model.predictor.ForcePredictor`
 wraps them with the normalisation and the paper units. Input ``x``: ``[B, h, 4]`` with the columns
 ``[q, v, fx, fz]`` of samples k-h+1..k (Eq. 2); ``v_next``: ``[B]``, the velocity v_{k+1} about
 to be applied; output ``[B, 2]``: the normalised force increment (see the predictor).

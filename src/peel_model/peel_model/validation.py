@@ -1,6 +1,6 @@
 """Is a forward model usable? Finite outputs on a probe batch (shared by planner and learner).
 
-:func:`~model_learner_node.checkpoint.load_checkpoint` refuses non-finite *weights*, but finite
+:func:`~peel_model.checkpoint.load_checkpoint` refuses non-finite *weights*, but finite
 weights can still give non-finite forces (weights scaled by 1e30 overflow float32 in the first
 layers). A model is usable only if it predicts finite (F_RX, F_RZ) at the next sample (Eq. 1-2)
 for a probe batch: the latest measured rows when there are any, else a fixed synthetic history,

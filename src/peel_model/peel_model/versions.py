@@ -10,14 +10,14 @@ the wrong model. Here the planner is the only allocator:
   and strictly increasing for the planner's lifetime.
 * Each :class:`~peel_msgs_py.modelinfo.ModelRecord` (shared with the simulator, which may not
   import this package) carries the model's identity: the SHA-256 of its safetensors file
-  (recorded in its checkpoint JSON by :func:`~model_learner_node.checkpoint.save_checkpoint`)
+  (recorded in its checkpoint JSON by :func:`~peel_model.checkpoint.save_checkpoint`)
   and, for an update of Algorithm 1, the ``producer`` and ``task`` written into the checkpoint
   meta by :func:`update_meta`. An outside model has no producer.
 * :meth:`ModelLedger.update_for` answers "has the learner's update after task k been swapped
   in, and under which version?" by that identity, never by comparing numbers.
 
 How the nodes use it (ROS-free here; the nodes are thin adapters): the planner keeps a ledger,
-``accept``\\ s a model after :func:`~model_learner_node.validation.check_finite_outputs` passed,
+``accept``\\ s a model after :func:`~peel_model.validation.check_finite_outputs` passed,
 publishes ``record.version`` on ``/peel/model_version`` and ``record.to_json()`` on the latched
 ``/peel/model_info``; the learner writes ``update_meta(node, task)`` into each checkpoint's meta;
 the simulator and ``peel graph`` wait for a record with ``is_update(producer, task)``
@@ -48,7 +48,7 @@ def update_meta(producer: str, task: int, **extra: Any) -> dict[str, Any]:
 
 def identify(path: str | Path) -> tuple[str, str | None, int | None]:
     """(SHA-256, producer, task) of a checkpoint, from its JSON (the file was verified against
-    that hash by :func:`~model_learner_node.checkpoint.load_checkpoint`)."""
+    that hash by :func:`~peel_model.checkpoint.load_checkpoint`)."""
     cfg = read_checkpoint_config(path)
     meta = cfg.get("meta") or {}
     producer = meta.get(PRODUCER_KEY)

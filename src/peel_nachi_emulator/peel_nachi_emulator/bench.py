@@ -21,13 +21,13 @@ import numpy as np
 
 from peel_msgs_py.cliargs import ArgumentParser, float_arg, positive_int
 from peel_msgs_py.errors import PeelError
+from peel_nachi_bridge import protocol as p
+from peel_nachi_bridge.bridge import NachiBridge
+from peel_nachi_bridge.config import load_config
+from peel_nachi_bridge.task import TaskResult
 
-from . import protocol as p
-from .bridge import NachiBridge
-from .config import load_config
 from .emulator import ControllerEmulator, EmulatorOptions
 from .faults import Fault
-from .task import TaskResult
 
 SPIKE_T = 0.5
 

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from peel_msgs_py.errors import PeelError
+from peel_nachi_bridge import protocol as p
 
-from . import protocol as p
 from .faults import CONNECTION_KINDS, Fault
 from .robot import Robot
 

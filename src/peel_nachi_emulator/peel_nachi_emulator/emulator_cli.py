@@ -15,8 +15,8 @@ import sys
 
 from peel_msgs_py.cliargs import ArgumentParser, int_arg, nonnegative_int, positive_float, run_main
 from peel_msgs_py.errors import PeelError
+from peel_nachi_bridge import protocol as p
 
-from . import protocol as p
 from .faults import KINDS, parse_fault
 
 

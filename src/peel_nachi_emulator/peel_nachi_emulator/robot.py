@@ -19,11 +19,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from peel_nachi_bridge import protocol as p
 from peel_sim_node.config import SimConfig, load_sim_config
 from peel_sim_node.env import PeelEnv
 from peel_sim_node.lockstep import task_params, task_seed
-
-from . import protocol as p
 
 
 class Robot:

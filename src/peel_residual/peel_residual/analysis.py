@@ -4,11 +4,11 @@
    each); everything is fitted on the fit tasks and every reported error is on the held-out
    ones.
 2. **Residual** of the model on the fit tasks, one step ahead (:mod:`.predict`); the samples
-   whose history reaches before the task start (padded, :mod:`model_learner_node.windows`) are
+   whose history reaches before the task start (padded, :mod:`peel_model.windows`) are
    left out of the fit: their input is the padding convention, not a measurement.
 3. **Trace** each channel (:mod:`.trace`): force channels against the candidates' one-step
    responses, the speed channel (v_{k+1} - u_k) against the velocity candidates.
-4. **Add** the named terms: :class:`~model_learner_node.compensated.CompensatedPredictor`.
+4. **Add** the named terms: :class:`~peel_model.compensated.CompensatedPredictor`.
 5. **Remains** (:mod:`.structure`), and **error before / after** on the held-out tasks
    (:mod:`.evaluate`), one step and open loop over the planner's horizon.
 """
@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from peel_model.compensated import CompensatedPredictor
+from peel_model.effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Rows, Term
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
-from ..compensated import CompensatedPredictor
-from ..effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Rows, Term
 from . import evaluate as E
 from . import predict as P
 from .config import ResidualConfig

@@ -22,11 +22,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from peel_model.predictor import INPUT_COLUMNS
 from peel_msgs_py.cliargs import ArgumentParser, float_arg, nonnegative_int, run_main
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.outputs import OutputDir
 
-from ..predictor import INPUT_COLUMNS
 from .params import RESIDUAL_SPECS
 
 RESIDUAL_DOC = "docs/residual.md"
@@ -59,7 +59,7 @@ def build_parser() -> ArgumentParser:
 
 def check_model_inputs(path: Path) -> dict[str, Any]:
     """The checkpoint's config, after checking that its inputs are what bags provide."""
-    from ..checkpoint import checkpoint_paths, read_checkpoint_config
+    from peel_model.checkpoint import checkpoint_paths, read_checkpoint_config
 
     st, js = checkpoint_paths(path)
     if not st.is_file():
@@ -86,7 +86,7 @@ def _config(args: argparse.Namespace) -> Any:
 
 
 def _save_corrected(out: Path, result: Any, model_path: Path, bags: list[str]) -> Path:
-    from ..checkpoint import save_checkpoint
+    from peel_model.checkpoint import save_checkpoint
 
     sha = hashlib.sha256(model_path.with_suffix(".safetensors").read_bytes()).hexdigest()
     meta = {"source": "peel residual", "base_model": str(model_path), "base_sha256": sha,
@@ -102,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = _config(args)
     import torch
 
-    from ..checkpoint import load_checkpoint, shipped_checkpoint
+    from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+
     from .analysis import STAGES, analyse
     from .report import write_report
     from .tasks import load_tasks

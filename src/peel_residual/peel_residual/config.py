@@ -7,10 +7,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from peel_model.effect_terms import FAMILIES, Candidate, candidates_from_grid
 from peel_msgs_py.errors import ParameterError
 from peel_msgs_py.params import load_node_params, validate_group
 
-from ..effect_terms import FAMILIES, Candidate, candidates_from_grid
 from .params import GRIDS, RESIDUAL_SPECS
 
 NODE = "model_learner_node"

@@ -2,7 +2,7 @@
 
 Both are cut from whole tasks exactly as the model sees them in training and in the planner:
 the history of the first samples is padded with sample 0 at rest
-(:mod:`model_learner_node.windows`), and the times of the padded rows continue backwards.
+(:mod:`peel_model.windows`), and the times of the padded rows continue backwards.
 """
 
 from __future__ import annotations
@@ -12,9 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from peel_model.windows import padded_arrays, padded_times, trajectory_windows
 from peel_msgs_py.trajectory import Trajectory
-
-from ..windows import padded_arrays, padded_times, trajectory_windows
 
 
 @dataclass

@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
+from peel_model.effect_terms import FORCE_CHANNELS
 from peel_msgs_py.trajectory import Trajectory
 
-from ..effect_terms import FORCE_CHANNELS
 from . import predict as P
 from .data import Horizons, Steps, horizons, one_step_samples
 
@@ -70,7 +70,7 @@ def held_out(tasks: list[Trajectory], h: int, steps: int, stride: int
 def term_shares(corrected: Any, before: Errors, s: Steps, hz: Horizons) -> list[dict[str, Any]]:
     """Per term of ``corrected``: the share of the *before* open-loop (and one-step) MSE of its
     channel that the term removes, measured by leaving it out of the corrected model."""
-    from ..compensated import CompensatedPredictor
+    from peel_model.compensated import CompensatedPredictor
 
     full = errors(corrected, s, hz).rmse()
     base_rmse = before.rmse()

@@ -21,7 +21,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL
+from peel_model.effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL
+
 from .data import Steps
 from .structure import VARIABLES, state_variables
 

@@ -4,7 +4,7 @@ Declared by ``model_learner_node`` with its other groups (:mod:`model_learner_no
 so that every parameter file naming them is checked by name and type, as for ``train.*``;
 read by ``peel residual`` (:mod:`.config`). Not paper constants: settings of the analysis
 (docs/residual.md). The shape-parameter lists are the grids of the candidate library
-(:mod:`model_learner_node.effect_terms`).
+(:mod:`peel_model.effect_terms`).
 """
 
 from __future__ import annotations

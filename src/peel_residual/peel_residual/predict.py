@@ -5,7 +5,7 @@
   speeds (and q), as MPPI uses the model (Algorithm 2 line 9) -- the residual that shows an
   effect which the one-step prediction partly sees in its force history;
 * :func:`term_responses`: how one model step changes when a candidate term g = c phi is added
-  as compensation, F = f(x - g, v) + g (:mod:`model_learner_node.compensated`), per unit c:
+  as compensation, F = f(x - g, v) + g (:mod:`peel_model.compensated`), per unit c:
   d F_{k+1} / d c = e_ch phi(x_{k+1}) - sum_j dF_{k+1}/dF_j phi(x_j), with the model's gradient
   with respect to its force history from autograd (exact linearisation at c = 0);
 * :func:`speed_one_step` / :func:`speed_open_loop`: the robot's speed from the commands, Eq. 2's
@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..effect_terms import FORCE_CHANNELS, Candidate, Rows
+from peel_model.effect_terms import FORCE_CHANNELS, Candidate, Rows
+
 from .data import Horizons, Steps
 
 _CHUNK = 4096

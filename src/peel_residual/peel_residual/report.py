@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from peel_model.checkpoint import atomic_write_json
+from peel_model.effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Term
 from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.trajectory import Trajectory
 
-from ..checkpoint import atomic_write_json
-from ..effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Term
 from . import figures as F
 from .analysis import Result
 from .config import ResidualConfig

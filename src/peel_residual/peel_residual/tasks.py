@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from peel_msgs_py import bagread
+from peel_bag import bagread
 from peel_msgs_py import topics as T
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory

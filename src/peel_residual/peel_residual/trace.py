@@ -42,7 +42,8 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.linear_model import Lasso, LassoCV, LinearRegression
 from sklearn.model_selection import GroupKFold
 
-from ..effect_terms import Candidate
+from peel_model.effect_terms import Candidate
+
 from .config import ResidualConfig
 
 #: ``(terms [(candidate, channel, coefficients)], test task ids) -> open-loop SSE``.
