@@ -157,9 +157,14 @@ def test_other_bad_arguments(tmp_path: Path, small_bag: Path,
     refused("--seed", str(small_bag), "--seed", "-1", "--out", out)
     refused("no such checkpoint", str(small_bag), "--model", str(tmp_path / "x"), "--out", out)
     (tmp_path / "p.yaml").write_text(
-        "model_learner_node:\n  ros__parameters:\n    residual:\n      holdot: 0.2\n")
+        "peel_residual:\n  ros__parameters:\n    residual:\n      holdot: 0.2\n")
     refused("unknown parameter 'residual.holdot'", str(small_bag), "--params",
             str(tmp_path / "p.yaml"), "--out", out)
+    # the residual group is peel_residual's (config/peel_residual.yaml), not the learner's
+    (tmp_path / "learner.yaml").write_text(
+        "model_learner_node:\n  ros__parameters:\n    residual:\n      holdout: 0.2\n")
+    refused("unknown parameter 'residual.holdout' for model_learner_node", str(small_bag), "--params",
+            str(tmp_path / "learner.yaml"), "--out", out)
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("mine")
     refused("holds no peel run", str(small_bag), "--out", str(tmp_path / "foreign"))

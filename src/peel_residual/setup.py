@@ -18,4 +18,10 @@ setup(
     maintainer_email="dev@peel.invalid",
     description="peel residual: the model's residual on bags traced to physical effects, added, reported.",
     license="Apache-2.0",
+    entry_points={
+        # the parameters this package declares (peel_msgs_py.params checks files by them)
+        "peel.parameters": [
+            'peel_residual = peel_residual.params:RESIDUAL_SPECS',
+        ],
+    },
 )

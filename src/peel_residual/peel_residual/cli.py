@@ -51,7 +51,7 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--seed", type=nonnegative_int, default=None,
                    help="seed (default: residual.seed)")
     p.add_argument("--params", metavar="FILE", default=None,
-                   help="parameter file over config/ (the residual group of model_learner_node; "
+                   help="parameter file over config/ (the residual group of peel_residual; "
                         "the planner's mppi.horizon for the open-loop horizon)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p

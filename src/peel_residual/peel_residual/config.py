@@ -1,4 +1,4 @@
-"""Settings of ``peel residual``: the ``residual:`` group of config/model_learner_node.yaml
+"""Settings of ``peel residual``: the ``residual:`` group of config/peel_residual.yaml
 (specs in :mod:`.params`), validated into a :class:`ResidualConfig` with its candidates."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from peel_msgs_py.params import load_node_params, validate_group
 
 from .params import GRIDS, RESIDUAL_SPECS
 
-NODE = "model_learner_node"
+NODE = "peel_residual"
 
 
 @dataclass(frozen=True)

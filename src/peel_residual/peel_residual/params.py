@@ -1,8 +1,8 @@
-"""The ``residual:`` group of config/model_learner_node.yaml as parameter specs (no torch).
+"""The ``residual:`` group of config/peel_residual.yaml as parameter specs (no torch).
 
-Declared by ``model_learner_node`` with its other groups (:mod:`model_learner_node.parameters`)
-so that every parameter file naming them is checked by name and type, as for ``train.*``;
-read by ``peel residual`` (:mod:`.config`). Not paper constants: settings of the analysis
+Registered as the ``peel_residual`` section under the ``peel.parameters`` entry point, so that
+every parameter file naming them is checked by name and type, as for ``train.*``; read by
+``peel residual`` (:mod:`.config`). Not paper constants: settings of the analysis
 (docs/residual.md). The shape-parameter lists are the grids of the candidate library
 (:mod:`peel_model.effect_terms`).
 """
