@@ -35,6 +35,7 @@ PUBLISHER = textwrap.dedent(f"""
     from rclpy.node import Node
     from std_msgs.msg import Float64MultiArray, Int64
     from peel_msgs_py import codec, topics as T
+    from peel_msgs_py.ros.messages import trajectory_msg
     from peel_msgs_py.trajectory import Trajectory
     rclpy.init()
     node = Node("fake_sim")
