@@ -19,9 +19,9 @@ import time
 import numpy as np
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from model_learner_node.maml import MetaLearner, load_maml_config
 from model_learner_node.replay import ReplayPool
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.env import PeelEnv, sample_params
 from peel_sim_node.episode import run_episode

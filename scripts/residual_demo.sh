@@ -7,7 +7,7 @@
 #    a slipping axis (OUT/axis/), and a slipping axis with a vacuum leak (OUT/axis_leak/);
 # 2. peel residual on that bag: the residual, the effects it names, the corrected model;
 # 3. the graph again, same seed and effects, planner and learner starting from the corrected model;
-# 4. planner cost J per task and safety margin, before and after (peel_bringup.residual_compare);
+# 4. planner cost J per task and safety margin, before and after (peel_experiments.residual_compare);
 # 5. the plant's own documented differences, with the shipped simulator-trained model: the graph
 #    on the plant (default level 3, and level 1) without injected effects and peel residual on
 #    its bag; the same analysis on plant data under exploratory commands (levels 3 and 1);
@@ -81,7 +81,7 @@ YAML
   $peel graph --plant plant --tasks "$tasks" --seed "$seed" "${effects[@]}" \
     --params "$d/after.yaml" --record "$d/after/bag" --out "$d/after/run"
   # 4. planner cost and safety margin, before and after
-  $py -m peel_bringup.residual_compare --before "$d/before/run" "$d/before/bag" \
+  $py -m peel_experiments.residual_compare --before "$d/before/run" "$d/before/bag" \
     --after "$d/after/run" "$d/after/bag" --out "$d/comparison" \
     --label-before "shipped model" --label-after "corrected model"
   { set +x; } 2>/dev/null

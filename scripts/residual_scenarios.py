@@ -8,7 +8,7 @@
 Each scenario is plant (or simulator) data with undeclared effects from
 ``peel_sim_node.example_effects``, generated in-process under exploratory command profiles
 (``peel_sim_node.episode.exploratory_tasks``), analysed with the shipped model exactly as
-``peel residual`` does (``model_learner_node.residual.analysis.analyse``), on the plant at
+``peel residual`` does (``peel_residual.analysis.analyse``), on the plant at
 ``--level`` (default: ``plant.level`` of config/peel_sim_node.yaml). One JSON line per
 (scenario, seed): the named terms and the held-out open-loop RMSE after / before per channel;
 docs/residual.md reports the table. ``--history-gradient``: instead, how much of a force offset in
@@ -25,12 +25,12 @@ import time
 import torch
 from tqdm import tqdm
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
-from model_learner_node.residual import predict as P
-from model_learner_node.residual.analysis import analyse
-from model_learner_node.residual.config import load_residual_config
-from model_learner_node.residual.data import one_step_samples
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_msgs_py.cliargs import ArgumentParser, int_arg, int_list, positive_int, run_main
+from peel_residual import predict as P
+from peel_residual.analysis import analyse
+from peel_residual.config import load_residual_config
+from peel_residual.data import one_step_samples
 from peel_sim_node import example_effects as X
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.episode import exploratory_tasks

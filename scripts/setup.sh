@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Idempotent environment setup: creates .venv (Python 3.11 or 3.12), installs the pinned
 # dependencies, ROS 2 Jazzy's rclpy and message packages (pip wheels, requirements-ros.txt) and
-# the six peel packages in editable mode. Re-running is a no-op when nothing changed (a stamp
+# the eleven peel packages in editable mode (in dependency order). Re-running is a no-op when nothing changed (a stamp
 # file holds the hash of every file that affects the install).
 #
 # On a machine with a sourced ROS 2 Jazzy install (ROS_DISTRO=jazzy) the venv sees the system
@@ -31,6 +31,19 @@ else
   ros_reqs=(-r requirements-ros.txt)
   venv_opts=()
 fi
+# The peel packages, each after the ones it depends on (test/test_workspace.py holds the order).
+PACKAGES=(peel_msgs_py peel_model peel_bag peel_sim_node peel_nachi_bridge peel_nachi_emulator
+          model_learner_node peel_planner_node peel_residual peel_experiments peel_bringup)
+# pip install -q, without the known noise: setuptools' "Editable installation" notice (one
+# 10-line block per package, a UserWarning of the build backend, ignored by message) and pip's
+# "Location ... is ignored" line for each find-links / index directory of the machine's pip
+# configuration that lacks a package. Anything else on stderr (every error) is shown.
+pip_quiet() {  # pip's stdout as is; its stderr through the filter (pipefail: pip's status)
+  { PYTHONWARNINGS="ignore:Editable installation" \
+      .venv/bin/python -m pip install -q --disable-pip-version-check "$@" 2>&1 1>&3 3>&- \
+      | { grep -v -E "^WARNING: Location '[^']*' is ignored: it is neither a file nor a directory\.$" || true; } >&2
+  } 3>&1
+}
 stamp=".venv/.peel-setup-stamp"
 hash="$ros_mode-$(cat requirements.txt requirements-ros.txt requirements-dev.txt src/*/setup.py src/*/package.xml | sha256sum | cut -c1-16)"
 if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel ]; }; then
@@ -40,17 +53,16 @@ if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel
     rm -rf .venv  # switched between the rclpy wheels and a sourced Jazzy: start afresh
   fi
   [ -x .venv/bin/python ] || "$PY" -m venv "${venv_opts[@]}" .venv
-  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip setuptools wheel
-  .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt \
-    -r requirements-dev.txt "${ros_reqs[@]}"
+  pip_quiet --upgrade pip setuptools wheel
+  pip_quiet -r requirements.txt -r requirements-dev.txt "${ros_reqs[@]}"
   if ! .venv/bin/python -c "import rclpy, geometry_msgs.msg, rosgraph_msgs.msg" 2>/dev/null; then
     echo "setup: error: rclpy is not importable from .venv (ROS_DISTRO=${ROS_DISTRO:-unset});" \
          "source /opt/ros/jazzy/setup.bash or unset ROS_DISTRO to use the pip wheels" >&2
     exit 2
   fi
-  for pkg in peel_msgs_py peel_sim_node peel_nachi_bridge model_learner_node peel_planner_node peel_bringup; do
-    .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
-  done
+  editable=()
+  for pkg in "${PACKAGES[@]}"; do editable+=(-e "src/$pkg"); done
+  pip_quiet --no-deps --no-build-isolation "${editable[@]}"
   echo "$hash" > "$stamp"
   echo "setup: done" >&2
 fi

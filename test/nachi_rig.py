@@ -2,7 +2,7 @@
 
 * :class:`Rig` joins the test's ROS domain (the ``ros_domain`` fixture of conftest.py; its own
   rclpy context), records every peel topic to
-  a bag with the project's :class:`~peel_msgs_py.bag.BagWriter` (messages serialized with
+  a bag with the project's :class:`~peel_bag.bag.BagWriter` (messages serialized with
   ``rclpy.serialization.serialize_message``), and, unless a real planner runs, commands the
   blade: at every control instant (every 5th sample of a task) it publishes ``/peel/cmd_vel``
   with ``speed(task, t)`` (mm/s; None = stay silent), stamped with the sample it answers.
@@ -26,8 +26,8 @@ from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray, Int64
 
+from peel_bag.bag import BagWriter
 from peel_msgs_py import codec, topics
-from peel_msgs_py.bag import BagWriter
 from peel_msgs_py.units import mmps_to_mps
 
 SLOT_S = 100.0

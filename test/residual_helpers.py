@@ -9,9 +9,10 @@ from pathlib import Path
 
 import ros_msgs as M
 
+from peel_bag.bag import BagWriter
 from peel_msgs_py import codec
 from peel_msgs_py import topics as T
-from peel_msgs_py.bag import BagWriter
+from peel_msgs_py.ros.messages import trajectory_msg
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.units import mm_to_m, mmps_to_mps
 from peel_sim_node.config import load_sim_config
@@ -64,7 +65,7 @@ def write_bag(path: Path, trajs: Sequence[Trajectory], *, trajectory: bool = Tru
                         bag.write(T.CMD_VEL, M.serialize(c), log)
             if trajectory:
                 log = max(log + 1, base + round(float(tr.t[-1]) * 1e9) + 1)
-                bag.write(T.TRAJECTORY, M.serialize(codec.trajectory_to_msg(tr)), log)
+                bag.write(T.TRAJECTORY, M.serialize(trajectory_msg(tr)), log)
     return Path(path)
 
 

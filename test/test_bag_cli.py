@@ -46,12 +46,14 @@ def test_unknown_topic_and_bad_duration(tmp_path) -> None:
 
 
 def test_module_entry_points_report_bad_path_in_one_line(tmp_path) -> None:
-    """``python -m peel_msgs_py.recorder_cli`` (what peel graph runs) and the ros2-run node."""
+    """``python -m peel_bag.recorder_cli`` (what peel graph runs) and the ros2-run node (the
+    ``peel_recorder`` console script, :func:`peel_bag.recorder_cli.node_main`)."""
     (tmp_path / "f").write_text("x")
-    for module in ("peel_msgs_py.recorder_cli", "peel_msgs_py.recorder_node"):
-        out = subprocess.run([sys.executable, "-m", module, "--out", str(tmp_path / "f" / "b"),
-                              "--ros-args", "-p", "x:=1"][: 5 if module.endswith("cli") else 8],
+    node = "import sys; from peel_bag.recorder_cli import node_main; sys.exit(node_main())"
+    for how in (["-m", "peel_bag.recorder_cli"], ["-c", node]):
+        out = subprocess.run([sys.executable, *how, "--out", str(tmp_path / "f" / "b"),
+                              "--ros-args", "-p", "x:=1"][: 5 if how[0] == "-m" else 8],
                              capture_output=True, text=True, timeout=120)
-        assert out.returncode == 2, module
+        assert out.returncode == 2, how
         assert out.stderr.strip() == f"peel record: error: cannot write bag {tmp_path}/f/b: " \
                                      "Not a directory"

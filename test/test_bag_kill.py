@@ -13,8 +13,9 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from peel_msgs_py import bagread
-from peel_msgs_py.bag import mcap_is_complete, repair_bag
+from peel_bag import bagread
+from peel_bag.bag import mcap_is_complete
+from peel_bag.bagrepair import repair_bag
 from peel_msgs_py.errors import PeelError
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
@@ -26,7 +27,7 @@ STORE = get_typestore(Stores.ROS2_JAZZY)
 # size only. Prints how many messages are in flushed chunks, then waits to be killed.
 WRITER = textwrap.dedent("""
     import sys, time
-    from peel_msgs_py.bag import BagWriter
+    from peel_bag.bag import BagWriter
     from geometry_msgs.msg import Vector3, Wrench, WrenchStamped
     from rclpy.serialization import serialize_message
     from peel_msgs_py.topics import STREAM_QOS
@@ -122,7 +123,7 @@ def test_cut_at_any_byte_keeps_the_chunks_before_the_cut(tmp_path) -> None:
     import ros_msgs as M
     from mcap.reader import make_reader
 
-    from peel_msgs_py.bag import BagWriter
+    from peel_bag.bag import BagWriter
 
     src = tmp_path / "full"
     with BagWriter(src, chunk_size=800) as bag:

@@ -17,8 +17,8 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from peel_msgs_py import bagread
-from peel_msgs_py.bag import mcap_is_complete
+from peel_bag import bagread
+from peel_bag.bag import mcap_is_complete
 from peel_msgs_py.errors import PeelError
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
@@ -35,6 +35,7 @@ PUBLISHER = textwrap.dedent(f"""
     from rclpy.node import Node
     from std_msgs.msg import Float64MultiArray, Int64
     from peel_msgs_py import codec, topics as T
+    from peel_msgs_py.ros.messages import trajectory_msg
     from peel_msgs_py.trajectory import Trajectory
     rclpy.init()
     node = Node("fake_sim")
@@ -53,7 +54,7 @@ PUBLISHER = textwrap.dedent(f"""
     traj = Trajectory(t=[0.0, 0.1], q=[0.0, 25.0], v=[0.0, 250.0], u=[5.0, 0.0], fx=[1.0, 2.0],
                       fz=[0.0, -1.0], psi=[np.nan, 0.1], outcome="timeout", params={{"mu": 0.5}},
                       meta={{"task_index": 1}})
-    pubs[T.TRAJECTORY].publish(codec.trajectory_to_msg(traj))
+    pubs[T.TRAJECTORY].publish(trajectory_msg(traj))
     acked = all(p.wait_for_all_acked(Duration(seconds=60)) for p in pubs.values())
     print("published" if acked else "not acknowledged", flush=True)
     node.destroy_node()

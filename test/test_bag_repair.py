@@ -19,7 +19,8 @@ from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from peel_msgs_py.bag import BagWriter, repair_bag
+from peel_bag.bag import BagWriter
+from peel_bag.bagrepair import repair_bag
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 N = 120

@@ -11,10 +11,12 @@ from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from peel_msgs_py import bagread, codec
+from peel_bag import bagread
+from peel_bag.bag import BagWriter, prepare_bag_dir
+from peel_msgs_py import codec
 from peel_msgs_py import topics as T
-from peel_msgs_py.bag import BagWriter, prepare_bag_dir
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.ros.messages import trajectory_msg
 from peel_msgs_py.trajectory import Trajectory
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
@@ -45,7 +47,7 @@ def _messages(n: int) -> list[tuple[str, object]]:
                       u=[10, 10, 10, 0.0], fx=[1, 2, 3, 4.0], fz=[0, -1, -2, -3.0],
                       psi=[np.nan, 0.1, 0.2, 0.3], outcome="done", params={"mu": 0.3},
                       meta={"task": 0})
-    out.append((T.TRAJECTORY, codec.trajectory_to_msg(traj)))
+    out.append((T.TRAJECTORY, trajectory_msg(traj)))
     return out
 
 

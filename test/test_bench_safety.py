@@ -7,7 +7,7 @@ import json
 import subprocess
 import sys
 
-from peel_bringup.bench_safety import summary
+from peel_experiments.bench_safety import summary
 
 
 def _bench(*args: str) -> subprocess.CompletedProcess[str]:
@@ -56,8 +56,8 @@ def test_bench_safety_refuses_bad_arguments() -> None:
 
 
 def test_experiment_trajectory_meta_carries_the_planner_guard() -> None:
-    from model_learner_node.checkpoint import shipped_checkpoint
-    from peel_bringup.experiment import Setup, planner_params, run_job
+    from peel_experiments.experiment import Setup, planner_params, run_job
+    from peel_model.checkpoint import shipped_checkpoint
 
     setup = Setup(checkpoint=str(shipped_checkpoint()), tasks=1, planner_params=planner_params(),
                   save_model=False, plant_level=1)

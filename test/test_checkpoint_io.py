@@ -8,14 +8,14 @@ import pytest
 import torch
 from safetensors.numpy import load_file as np_load_file
 
-from model_learner_node.checkpoint import (
+from peel_model.checkpoint import (
     checkpoint_paths,
     load_checkpoint,
     read_checkpoint_config,
     save_checkpoint,
 )
-from model_learner_node.config import ModelConfig
-from model_learner_node.predictor import ForcePredictor, Normalization
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, Normalization
 from peel_msgs_py.errors import CheckpointError
 
 NORM = Normalization(in_mean=(12.0, 1.5, 2.0, 3.0), in_std=(7.0, 1.1, 0.9, 1.3),

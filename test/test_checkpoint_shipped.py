@@ -14,9 +14,9 @@ import json
 import numpy as np
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from model_learner_node.metrics import evaluate, persistence_metrics
-from model_learner_node.windows import stack_windows
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.windows import stack_windows
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.dataset import config_hash, generate_set, split_of_sets
 

@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
 from peel_bringup.cli import main as peel_main
+from peel_model.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.dataset import generate_dataset
 

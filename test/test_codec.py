@@ -12,6 +12,7 @@ from std_msgs.msg import Float64MultiArray
 
 from peel_msgs_py import codec
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.ros.messages import trajectory_msg
 from peel_msgs_py.trajectory import Trajectory
 
 
@@ -37,7 +38,7 @@ def _same(a: Trajectory, b: Trajectory) -> None:
 
 def test_round_trip_through_rclpy_message_and_cdr() -> None:
     traj = _traj()
-    msg = codec.trajectory_to_msg(traj)
+    msg = trajectory_msg(traj)
     assert isinstance(msg, Float64MultiArray)
     _same(codec.trajectory_from_msg(msg), traj)
     back = deserialize_message(serialize_message(msg), Float64MultiArray)
@@ -58,7 +59,7 @@ def test_si_on_the_wire() -> None:
 def test_jazzy_user_decoding_recipe_on_rosbags_message() -> None:
     """A rosbags-deserialised message decodes with the documented two-line recipe and ours."""
     traj = _traj(12)
-    raw = serialize_message(codec.trajectory_to_msg(traj))
+    raw = serialize_message(trajectory_msg(traj))
     store = get_typestore(Stores.ROS2_JAZZY)
     msg = store.deserialize_cdr(raw, "std_msgs/msg/Float64MultiArray")
     header = json.loads(msg.layout.dim[0].label.split(" ", 1)[1])
@@ -70,20 +71,20 @@ def test_jazzy_user_decoding_recipe_on_rosbags_message() -> None:
 
 def test_empty_trajectory_round_trips() -> None:
     empty = Trajectory(*(np.zeros(0) for _ in range(7)), outcome="aborted")
-    back = codec.trajectory_from_msg(codec.trajectory_to_msg(empty))
+    back = codec.trajectory_from_msg(trajectory_msg(empty))
     assert len(back) == 0 and back.outcome == "aborted"
 
 
 def test_bad_messages_name_the_field() -> None:
-    msg = codec.trajectory_to_msg(_traj(5))
+    msg = trajectory_msg(_traj(5))
     msg.layout.dim[1].label = "t,q"
     with pytest.raises(PeelError, match=r"dim\[1\]\.label"):
         codec.trajectory_from_msg(msg)
-    msg = codec.trajectory_to_msg(_traj(5))
+    msg = trajectory_msg(_traj(5))
     msg.data = msg.data[:-1]
     with pytest.raises(PeelError, match="data has 34 values"):
         codec.trajectory_from_msg(msg)
-    msg = codec.trajectory_to_msg(_traj(5))
+    msg = trajectory_msg(_traj(5))
     msg.layout.dim[0].label = "samples {not json"
     with pytest.raises(PeelError, match=r"dim\[0\]\.label header is not JSON"):
         codec.trajectory_from_msg(msg)

@@ -15,10 +15,10 @@ import pytest
 import torch
 from safetensors.numpy import load_file
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
-from model_learner_node.config import ModelConfig
-from model_learner_node.predictor import ForcePredictor, fit_normalization
 from model_learner_node.synthetic import synthetic_trajectory
+from peel_model.checkpoint import load_checkpoint, save_checkpoint
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, fit_normalization
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
@@ -113,7 +113,7 @@ def test_figures_tables_report_and_saved_model(experiment: dict) -> None:
 
 
 def test_results_do_not_depend_on_worker_count(setup: dict[str, Path], experiment: dict) -> None:
-    from peel_bringup.experiment import Setup, planner_params, run_job
+    from peel_experiments.experiment import Setup, planner_params, run_job
 
     res = json.loads((experiment["out"] / "results.json").read_text())
     pparams = planner_params(n_samples=6, horizon=2, lam=0.1,
@@ -171,7 +171,7 @@ def test_grid_runs_cells_and_writes_one_report(setup: dict[str, Path]) -> None:
     cell = json.loads((out / "L3_drift" / "results.json").read_text())
     assert cell["plant"]["level"] == 3 and cell["sequence"] == "drift"
     fr = [t["substrate"]["friction"] for t in cell["runs"]["0"]["oracle"]["tasks"]]
-    from peel_bringup.experiment import substrates
+    from peel_experiments.experiment import substrates
     from peel_sim_node.config import load_sim_config
 
     want = substrates(load_sim_config(str(setup["sim"])), 0, 2, level=3, sequence="drift")

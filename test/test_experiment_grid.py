@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from peel_bringup.grid import ci95, closed_fraction, grid_targets
+from peel_experiments.grid import ci95, closed_fraction, grid_targets
 
 
 def _runs(costs_by_seed):

@@ -6,8 +6,8 @@ No learning method is run here: what online learning makes of the headroom is me
 
 import numpy as np
 
-from model_learner_node.checkpoint import shipped_checkpoint
-from peel_bringup.experiment import Setup, planner_params, run_job, substrates
+from peel_experiments.experiment import Setup, planner_params, run_job, substrates
+from peel_model.checkpoint import shipped_checkpoint
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.plant import LEVELS, plant_spec
 

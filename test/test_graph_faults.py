@@ -47,7 +47,7 @@ def _cmd(tmp: Path, *extra: str, tasks: int, meta_steps: int = 1, **maml: float)
 
 def _huge_model(tmp: Path) -> Path:
     """The initial model's weights x 1e30, saved: finite weights, non-finite forces."""
-    from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
+    from peel_model.checkpoint import load_checkpoint, save_checkpoint
 
     pred = load_checkpoint(tmp / "init.safetensors")
     with torch.no_grad():
@@ -109,9 +109,9 @@ def test_outside_swap_gets_the_next_version_and_does_not_end_the_wait(
     from rcl_interfaces.srv import SetParameters
     from rclpy.node import Node
 
-    from model_learner_node.checkpoint import save_checkpoint
-    from model_learner_node.config import ModelConfig
-    from model_learner_node.predictor import ForcePredictor
+    from peel_model.checkpoint import save_checkpoint
+    from peel_model.config import ModelConfig
+    from peel_model.predictor import ForcePredictor
 
     bag = tmp_path / "bag"
     # a slow learner (many meta steps) leaves seconds between task 1's end and its update

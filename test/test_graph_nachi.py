@@ -1,7 +1,7 @@
 """``peel graph --plant nachi``: the whole graph against ``peel nachi-emulator`` as real processes
 (the emulator, the launcher, the Nachi bridge, the planner, the learner and the recorder, all on
 rclpy, on the test's own ROS domain from the ``ros_domain`` fixture), with the bag read back by
-``rosbags`` (:mod:`peel_msgs_py.bagread`) and by mcap's own ROS 2 decoder; the launcher's exit
+``rosbags`` (:mod:`peel_bag.bagread`) and by mcap's own ROS 2 decoder; the launcher's exit
 codes when the bridge gives up (1) and for bad bridge parameters (2, before anything starts).
 """
 
@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 from graph_helpers import SMALL_MAML, node_env, read_bag_mcap_ros2
 
-from peel_msgs_py import bagread, topics
+from peel_bag import bagread
+from peel_msgs_py import topics
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 

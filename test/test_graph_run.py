@@ -72,9 +72,9 @@ def initial_model(tmp: Path) -> Path:
     """A freshly initialised forward model (seeded): the tests do not depend on training."""
     import torch
 
-    from model_learner_node.checkpoint import save_checkpoint
-    from model_learner_node.config import ModelConfig
-    from model_learner_node.predictor import ForcePredictor
+    from peel_model.checkpoint import save_checkpoint
+    from peel_model.config import ModelConfig
+    from peel_model.predictor import ForcePredictor
 
     torch.manual_seed(0)
     return save_checkpoint(tmp / "init.safetensors", ForcePredictor(ModelConfig()))
@@ -211,7 +211,7 @@ def test_three_tasks_bag_rates_trajectories_and_model_swaps(tmp_path: Path, ros_
     assert latched[0]["durability"] == "transient_local"
 
     # the same three peels in one process, as `peel experiment` runs them
-    from peel_bringup.experiment import Setup, planner_params, run_job
+    from peel_experiments.experiment import Setup, planner_params, run_job
 
     ov = str(tmp_path / "override.yaml")
     exp = run_job("ol-mppi", 3, Setup(

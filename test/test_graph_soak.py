@@ -22,7 +22,7 @@ import pytest
 import torch
 from graph_helpers import SMALL_MAML, node_env
 
-from peel_bringup.soak import Watch, _markdown, build_report, memory_summary, sample_tree
+from peel_experiments.soak import Watch, _markdown, build_report, memory_summary, sample_tree
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
@@ -126,9 +126,9 @@ peel_bringup:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_soak_two_peels_reports_every_node(tmp_path: Path, ros_domain: str) -> None:
-    from model_learner_node.checkpoint import save_checkpoint
-    from model_learner_node.config import ModelConfig
-    from model_learner_node.predictor import ForcePredictor
+    from peel_model.checkpoint import save_checkpoint
+    from peel_model.config import ModelConfig
+    from peel_model.predictor import ForcePredictor
 
     torch.manual_seed(0)
     init = save_checkpoint(tmp_path / "init.safetensors", ForcePredictor(ModelConfig()))

@@ -10,7 +10,7 @@
   (exit 5, one line naming the domain), and the first run's bag holds its own data only;
 * a second node of one name on a domain is warned about by both;
 * a recording onto a full disk (the bag file's writes fail with ENOSPC past 12 000 bytes:
-  :data:`peel_msgs_py.bag.FAIL_AFTER_ENV`) ends the run with exit 4, the recorder named dead
+  :data:`peel_bag.bag.FAIL_AFTER_ENV`) ends the run with exit 4, the recorder named dead
   in summary.json and the repair command printed; the repaired bag reads back.
 
 Every wait waits for the event it needs, with a timeout only a hang reaches.
@@ -34,7 +34,7 @@ import pytest
 from graph_helpers import Lines, assert_clean_logs, node_env
 from test_graph_run import graph_cmd, read_bag
 
-from peel_msgs_py.bag import FAIL_AFTER_ENV
+from peel_bag.bag import FAIL_AFTER_ENV
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 

@@ -224,8 +224,9 @@ def test_config_validation_names_the_field() -> None:
 def test_meta_gradient_of_the_real_forward_model_with_training_loss(arch: str) -> None:
     """Second-order meta-gradient of a tiny ForcePredictor (conv + attention + LSTM) with the
     model's own loss L_MSE + kappa L_PENE, against central differences, in float64."""
-    from model_learner_node.config import ModelConfig, TrainConfig
-    from model_learner_node.predictor import ForcePredictor, Normalization
+    from model_learner_node.config import TrainConfig
+    from peel_model.config import ModelConfig
+    from peel_model.predictor import ForcePredictor, Normalization
 
     torch.manual_seed(3)
     cfg = ModelConfig(arch=arch, h=4, conv_channels=2, attention_hidden=2, lstm_hidden=2,

@@ -4,9 +4,9 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from model_learner_node.config import ModelConfig
-from model_learner_node.model import ConvAttentionLSTM
-from model_learner_node.predictor import ForcePredictor, Normalization
+from peel_model.config import ModelConfig
+from peel_model.model import ConvAttentionLSTM
+from peel_model.predictor import ForcePredictor, Normalization
 from peel_msgs_py.errors import ParameterError
 
 ARCHS = ("ours", "mlp", "cnn-lstm")

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 import torch
 
-from model_learner_node.config import ModelConfig
 from model_learner_node.gate import GateConfig, HeldOutGate, cut_index, held_out_windows
 from model_learner_node.online import OnlineLearner
-from model_learner_node.predictor import ForcePredictor, fit_normalization
 from model_learner_node.synthetic import synthetic_trajectory
-from model_learner_node.windows import last_history
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, fit_normalization
+from peel_model.windows import last_history
 from peel_msgs_py.modelinfo import OFFERED, SKIPPED
 from peel_msgs_py.trajectory import Trajectory
 
@@ -127,8 +127,8 @@ def test_the_learner_reports_a_refused_update_as_skipped(truth: ForcePredictor, 
     """Through OnlineLearner (the node's core): an Algorithm 1 step with a huge meta step
     size predicts the held-out end worse than the starting model, is reported skipped with
     both errors, writes no file, and leaves the weights as they were."""
-    from model_learner_node.checkpoint import save_checkpoint
     from model_learner_node.parameters import SPECS
+    from peel_model.checkpoint import save_checkpoint
     from peel_msgs_py.params import validate
 
     init = save_checkpoint(tmp_path / "init.safetensors", truth)

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from model_learner_node.config import ModelConfig
 from model_learner_node.losses import batch_loss, mse_loss, pene_loss, total_loss
 from model_learner_node.metrics import corr, rmse
-from model_learner_node.predictor import ForcePredictor, Normalization
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, Normalization
 
 
 def test_pene_zero_within_limit_and_positive_beyond():

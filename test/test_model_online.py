@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
+from peel_model.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
 from peel_msgs_py.errors import PeelError
 
 PRODUCER = "/model_learner_node"
@@ -69,7 +69,7 @@ def test_starting_model_with_non_finite_outputs_is_refused(tmp_path: Path) -> No
 def test_failed_update_is_reported_and_the_last_good_weights_stay(tmp_path: Path,
                                                                   trajectory: Any) -> None:
     from model_learner_node.online import OnlineLearner
-    from model_learner_node.validation import check_finite_outputs
+    from peel_model.validation import check_finite_outputs
 
     learner = OnlineLearner(_values(tmp_path, **{"maml.beta": 1e30}), producer=PRODUCER)
     before = {k: v.clone() for k, v in learner.predictor.state_dict().items()}
@@ -87,7 +87,7 @@ def test_failed_update_is_reported_and_the_last_good_weights_stay(tmp_path: Path
 
 def test_update_names_its_producer_and_task(tmp_path: Path, trajectory: Any) -> None:
     from model_learner_node.online import OnlineLearner
-    from model_learner_node.versions import ModelLedger
+    from peel_model.versions import ModelLedger
 
     learner = OnlineLearner(_values(tmp_path), producer=PRODUCER)
     report = learner.learn(trajectory, _Log())

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from model_learner_node.replay import ReplayPool
-from model_learner_node.windows import last_history, stack_windows, trajectory_windows
+from peel_model.windows import last_history, stack_windows, trajectory_windows
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
-from model_learner_node.validation import check_finite_outputs
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.validation import check_finite_outputs
 from peel_msgs_py.errors import PeelError
 
 
@@ -26,8 +26,8 @@ def test_finite_output_probe() -> None:
 def test_model_versions_unique_and_monotonic_whoever_swaps(tmp_path) -> None:
     """An outside model with an unversioned name, then the learner's own v1: no collision, and
     the learner's update is found by its identity, not by a number."""
-    from model_learner_node.checkpoint import save_checkpoint
-    from model_learner_node.versions import ModelLedger, ModelRecord, update_meta
+    from peel_model.checkpoint import save_checkpoint
+    from peel_model.versions import ModelLedger, ModelRecord, update_meta
 
     pred = load_checkpoint(shipped_checkpoint())
     ledger = ModelLedger.start(shipped_checkpoint())

@@ -18,11 +18,11 @@ import pytest
 from peel_nachi_bridge import protocol as p
 from peel_nachi_bridge.bridge import NachiBridge
 from peel_nachi_bridge.config import load_config
-from peel_nachi_bridge.emulator import ControllerEmulator, EmulatorOptions
-from peel_nachi_bridge.faults import parse_fault
 from peel_nachi_bridge.link import Backoff
-from peel_nachi_bridge.robot import Robot
 from peel_nachi_bridge.task import TaskResult
+from peel_nachi_emulator.emulator import ControllerEmulator, EmulatorOptions
+from peel_nachi_emulator.faults import parse_fault
+from peel_nachi_emulator.robot import Robot
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.env import PeelEnv
 from peel_sim_node.lockstep import task_params, task_seed

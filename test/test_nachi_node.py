@@ -3,7 +3,7 @@
 of the issue in one run (each with its recorded outcome), and the node's exits.
 
 The test process holds the emulator (a thread) and a rig (rclpy: recorder to a bag written with
-peel_msgs_py.bag from ``serialize_message`` bytes, and, where no planner runs, a commander).
+peel_bag.bag from ``serialize_message`` bytes, and, where no planner runs, a commander).
 Every test runs on a ROS domain of its own (the ``ros_domain`` fixture of conftest.py); the
 processes it starts inherit it.
 """
@@ -19,10 +19,11 @@ import pytest
 from graph_helpers import SMALL_MAML, node_env
 from nachi_rig import SLOT_S, Rig, bridge_cmd
 
-from peel_msgs_py import bagread, topics
-from peel_nachi_bridge.emulator import ControllerEmulator, EmulatorOptions
-from peel_nachi_bridge.faults import parse_fault
-from peel_nachi_bridge.robot import Robot
+from peel_bag import bagread
+from peel_msgs_py import topics
+from peel_nachi_emulator.emulator import ControllerEmulator, EmulatorOptions
+from peel_nachi_emulator.faults import parse_fault
+from peel_nachi_emulator.robot import Robot
 from peel_sim_node.config import load_sim_config
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh

@@ -15,10 +15,10 @@ from peel_msgs_py.errors import ParameterError, PeelError
 from peel_msgs_py.params import load_param_file
 from peel_nachi_bridge import protocol as p
 from peel_nachi_bridge.config import BRIDGE_SPECS, BridgeConfig, load_config
-from peel_nachi_bridge.emulator import ControllerEmulator, EmulatorOptions
-from peel_nachi_bridge.faults import parse_fault
 from peel_nachi_bridge.parameters import NODE_NAME
-from peel_nachi_bridge.robot import Robot
+from peel_nachi_emulator.emulator import ControllerEmulator, EmulatorOptions
+from peel_nachi_emulator.faults import parse_fault
+from peel_nachi_emulator.robot import Robot
 from peel_sim_node.config import load_sim_config
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh

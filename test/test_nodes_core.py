@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_msgs_py.errors import PeelError
 from peel_planner_node.config import load_planner_config
 from peel_planner_node.control_loop import ControlLoop, StateAssembler

@@ -80,7 +80,7 @@ def test_the_launcher_sends_each_node_one_signal(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("module", ["peel_planner_node.node", "model_learner_node.node",
-                                    "peel_msgs_py.recorder_cli"])
+                                    "peel_bag.recorder_cli"])
 def test_a_signal_while_the_child_still_imports_ends_it_cleanly(module: str, tmp_path,
                                                                 ros_domain: str) -> None:
     """The launcher's SIGINT can come while a child is still importing torch: held until the

@@ -25,9 +25,9 @@ import torch
 from graph_helpers import node_env
 from safetensors.torch import load_file, save_file
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
-from model_learner_node.config import ModelConfig
-from model_learner_node.predictor import ForcePredictor
+from peel_model.checkpoint import load_checkpoint, save_checkpoint
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor
 from peel_planner_node.model_check import validate_model
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh

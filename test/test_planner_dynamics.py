@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from model_learner_node.config import ModelConfig
-from model_learner_node.predictor import ForcePredictor, Normalization
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, Normalization
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node.config import DynamicsConfig, FusedConfig, PlannerConfig

@@ -81,7 +81,7 @@ def compile_attempt(*args, **kwargs):
 ext.load_inline = ext.load = compile_attempt
 logging.basicConfig(level=logging.WARNING)
 import numpy as np
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node import native_loop
 from peel_planner_node.config import load_planner_config

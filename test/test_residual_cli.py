@@ -17,11 +17,11 @@ import matplotlib.image as mpimg
 import pytest
 from residual_helpers import generate_tasks, peel, write_bag
 
-from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
-from model_learner_node.compensated import CompensatedPredictor
-from model_learner_node.residual.cli import main as residual_main
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.compensated import CompensatedPredictor
 from peel_msgs_py.cliargs import run_main
 from peel_msgs_py.outputs import OutputDir
+from peel_residual.cli import main as residual_main
 from peel_sim_node.example_effects import slipping_axis, vacuum_leak
 
 REPORT_KEYS = {"rmse_before", "rmse_after", "effects", "unexplained", "holdout"}
@@ -101,8 +101,8 @@ def _one_line_error(proc, needle: str) -> None:
 def test_bag_without_the_needed_topics(tmp_path: Path) -> None:
     import ros_msgs as M
 
+    from peel_bag.bag import BagWriter
     from peel_msgs_py import topics as T
-    from peel_msgs_py.bag import BagWriter
 
     with BagWriter(tmp_path / "clock") as bag:
         bag.add_topic(T.CLOCK, T.topic(T.CLOCK).type, [T.topic(T.CLOCK).qos])
@@ -157,9 +157,14 @@ def test_other_bad_arguments(tmp_path: Path, small_bag: Path,
     refused("--seed", str(small_bag), "--seed", "-1", "--out", out)
     refused("no such checkpoint", str(small_bag), "--model", str(tmp_path / "x"), "--out", out)
     (tmp_path / "p.yaml").write_text(
-        "model_learner_node:\n  ros__parameters:\n    residual:\n      holdot: 0.2\n")
+        "peel_residual:\n  ros__parameters:\n    residual:\n      holdot: 0.2\n")
     refused("unknown parameter 'residual.holdot'", str(small_bag), "--params",
             str(tmp_path / "p.yaml"), "--out", out)
+    # the residual group is peel_residual's (config/peel_residual.yaml), not the learner's
+    (tmp_path / "learner.yaml").write_text(
+        "model_learner_node:\n  ros__parameters:\n    residual:\n      holdout: 0.2\n")
+    refused("unknown parameter 'residual.holdout' for model_learner_node", str(small_bag), "--params",
+            str(tmp_path / "learner.yaml"), "--out", out)
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("mine")
     refused("holds no peel run", str(small_bag), "--out", str(tmp_path / "foreign"))

@@ -21,13 +21,13 @@ import torch
 from graph_helpers import SMALL_MAML, node_env
 from residual_helpers import peel
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
-from model_learner_node.compensated import CompensatedPredictor
-from model_learner_node.config import ModelConfig
-from model_learner_node.effect_terms import Candidate, Term
-from model_learner_node.predictor import ForcePredictor, fit_normalization
 from model_learner_node.synthetic import synthetic_trajectory
-from peel_msgs_py.bagread import read_trajectories
+from peel_bag.bagread import read_trajectories
+from peel_model.checkpoint import load_checkpoint, save_checkpoint
+from peel_model.compensated import CompensatedPredictor
+from peel_model.config import ModelConfig
+from peel_model.effect_terms import Candidate, Term
+from peel_model.predictor import ForcePredictor, fit_normalization
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 

@@ -17,15 +17,14 @@ import pytest
 import torch
 from safetensors.numpy import load_file
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
-from model_learner_node.compensated import CompensatedPredictor
-from model_learner_node.config import ModelConfig
-from model_learner_node.effect_terms import FAMILIES, Candidate, Rows, Term
 from model_learner_node.maml import MamlConfig, MetaLearner, sample_batch
-from model_learner_node.predictor import ForcePredictor, fit_normalization
-from model_learner_node.residual.params import FAMILY_NAMES, GRIDS
 from model_learner_node.synthetic import synthetic_trajectory
-from model_learner_node.windows import padded_times
+from peel_model.checkpoint import load_checkpoint, save_checkpoint
+from peel_model.compensated import CompensatedPredictor
+from peel_model.config import ModelConfig
+from peel_model.effect_terms import FAMILIES, Candidate, Rows, Term
+from peel_model.predictor import ForcePredictor, fit_normalization
+from peel_model.windows import padded_times
 from peel_msgs_py.errors import CheckpointError, PeelError
 from peel_planner_node.config import load_planner_config
 from peel_planner_node.cost import Cost, total
@@ -33,6 +32,7 @@ from peel_planner_node.dynamics import ReferenceDynamics, history_window, learne
 from peel_planner_node.fused_dynamics import FusedDynamics
 from peel_planner_node.model_check import validate_model
 from peel_planner_node.mppi import Planner
+from peel_residual.params import FAMILY_NAMES, GRIDS
 
 
 @pytest.fixture(scope="module")

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from residual_helpers import generate_tasks, write_bag
 
-from model_learner_node.effect_terms import Candidate
-from model_learner_node.residual.config import load_residual_config
-from model_learner_node.residual.tasks import tasks_from_bag
-from model_learner_node.residual.trace import Column, Problem, trace
+from peel_model.effect_terms import Candidate
+from peel_residual.config import load_residual_config
+from peel_residual.tasks import tasks_from_bag
+from peel_residual.trace import Column, Problem, trace
 
 CFG = load_residual_config(bootstrap=100)
 

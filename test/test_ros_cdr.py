@@ -16,9 +16,9 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.typesys import Stores, get_typestore
 
+from peel_bag.recorder_node import message_class
 from peel_msgs_py import codec, topics
-from peel_msgs_py.recorder_node import message_class
-from peel_msgs_py.ros.messages import stamp
+from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.trajectory import Trajectory
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
@@ -29,7 +29,7 @@ def _trajectory_msg():
                       u=[10.0] * 5, fx=[1, 2, 3, 4, 5.0], fz=[0, -1, -2, -3, -4.0],
                       psi=[np.nan, 0.1, 0.2, 0.3, 0.4], outcome="done", params={"mu": 0.3},
                       meta={"task_index": 2, "note": "äö"})
-    return codec.trajectory_to_msg(traj)
+    return trajectory_msg(traj)
 
 
 def _stamped(cls, **fields):

@@ -6,7 +6,7 @@ digests below are the SHA-256 of the float64 little-endian bytes; a change of an
 small, fails. They were last re-pinned when the blade got its vertical compliance (psi follows
 the vertical load) and the peel-rate load was recalibrated to Table 1 (docs/simulator.md,
 "Vertical compliance"); re-pin only on purpose, and
-then regenerate the shipped checkpoint (model_learner_node/checkpoints/PROVENANCE.md).
+then regenerate the shipped checkpoint (peel_model/checkpoints/PROVENANCE.md).
 """
 
 import hashlib

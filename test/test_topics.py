@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from peel_msgs_py import qos as Q
 from peel_msgs_py import topics as T
 from peel_msgs_py.errors import PeelError
 
@@ -22,7 +23,7 @@ def test_required_topics_types_and_rates() -> None:
     for name, (msgtype, rate) in want.items():
         spec = T.topic(name)
         assert (spec.type, spec.rate_hz) == (msgtype, rate), name
-    assert T.topic(T.MODEL_VERSION).qos.durability == T.TRANSIENT_LOCAL
+    assert T.topic(T.MODEL_VERSION).qos.durability == Q.TRANSIENT_LOCAL
     assert set(T.RECORDED_TOPICS) == set(T.TOPICS)
     assert all(n.startswith("/peel/") or n == "/clock" for n in T.TOPICS)
 
@@ -40,14 +41,14 @@ def test_unknown_topic_names_it() -> None:
 
 def test_qos_spec_validation_and_bag_form() -> None:
     with pytest.raises(PeelError, match="reliability"):
-        T.QosSpec(reliability="sometimes")
+        Q.QosSpec(reliability="sometimes")
     with pytest.raises(PeelError, match="depth"):
-        T.QosSpec(depth=-1)
+        Q.QosSpec(depth=-1)
     d = T.LATCHED_QOS.to_bag()
     assert (d["history"], d["depth"], d["reliability"], d["durability"]) == (
         "keep_last", 1, "reliable", "transient_local")
     # the recorder subscribes to /clock best effort (matches any publisher), the rest as offered
-    assert T.topic(T.CLOCK).sub_qos.reliability == T.BEST_EFFORT
+    assert T.topic(T.CLOCK).sub_qos.reliability == Q.BEST_EFFORT
     assert T.topic(T.WRENCH).sub_qos == T.STREAM_QOS
 
 

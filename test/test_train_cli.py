@@ -7,20 +7,20 @@ import sys
 import ros_msgs as M
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint, save_checkpoint
-from model_learner_node.config import ModelConfig
-from model_learner_node.predictor import ForcePredictor, fit_normalization
 from model_learner_node.synthetic import synthetic_split
-from peel_msgs_py import codec
+from peel_bag.bag import BagWriter
+from peel_model.checkpoint import load_checkpoint, save_checkpoint
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, fit_normalization
 from peel_msgs_py import topics as T
-from peel_msgs_py.bag import BagWriter
+from peel_msgs_py.ros.messages import trajectory_msg
 
 
 def write_bag(path, trajs):
     with BagWriter(path) as bag:
         bag.add_topic(T.TRAJECTORY, T.topic(T.TRAJECTORY).type, [T.topic(T.TRAJECTORY).qos])
         for i, traj in enumerate(trajs):
-            bag.write(T.TRAJECTORY, M.serialize(codec.trajectory_to_msg(traj)),
+            bag.write(T.TRAJECTORY, M.serialize(trajectory_msg(traj)),
                       1_700_000_000_000_000_000 + i * 10**9)
 
 

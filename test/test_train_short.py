@@ -5,11 +5,12 @@ import json
 import numpy as np
 import torch
 
-from model_learner_node.checkpoint import load_checkpoint
-from model_learner_node.config import ModelConfig, TrainConfig
+from model_learner_node.config import TrainConfig
 from model_learner_node.metrics import evaluate
 from model_learner_node.synthetic import synthetic_split
 from model_learner_node.train import dataset_hash, train_and_save, train_model
+from peel_model.checkpoint import load_checkpoint
+from peel_model.config import ModelConfig
 
 TRAIN = synthetic_split(1, 16)
 VAL = synthetic_split(2, 4)

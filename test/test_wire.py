@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from peel_msgs_py import bag as bagmod
+from peel_bag import bag as bagmod
+from peel_bag.bagrepair import repair_bag
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.trajectory import Trajectory
@@ -95,5 +96,5 @@ def test_a_full_disk_fails_the_bag_with_the_repair_command(tmp_path, monkeypatch
     size = writer.file_path.stat().st_size
     assert 0 < size <= 2000
     monkeypatch.delenv(bagmod.FAIL_AFTER_ENV)
-    result = bagmod.repair_bag(path)
+    result = repair_bag(path)
     assert result.as_dict()["messages"] > 0

@@ -8,8 +8,6 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
-    package_data={package_name: ["checkpoints/*.safetensors", "checkpoints/*.json", "checkpoints/*.md"]},
-    include_package_data=True,
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/model_learner_node']),
         ('share/model_learner_node', ['package.xml']),
@@ -18,7 +16,7 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="Forward model, offline training, MAML online learning, learner node.",
+    description="Offline training, MAML online learning, replay, held-out gate, learner node.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

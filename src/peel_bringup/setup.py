@@ -20,7 +20,7 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="The peel command, graph launcher, experiments and launch file.",
+    description="The peel command, graph launcher, demo and launch file.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -17,11 +17,6 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="peel interfaces: topics, QoS, codec, units, params, rclpy helpers, recorder.",
+    description="peel interfaces: topics, QoS, codec, units, params, diagnostics, rclpy helpers.",
     license="Apache-2.0",
-    entry_points={
-        "console_scripts": [
-            'peel_recorder = peel_msgs_py.recorder_node:main',
-        ],
-    },
 )

@@ -17,7 +17,7 @@ setup(
     zip_safe=True,
     maintainer="peel developers",
     maintainer_email="dev@peel.invalid",
-    description="Bridge to the Nachi robot controller over TCP (NACHI-PEEL 1) and a controller emulator.",
+    description="Bridge to the Nachi robot controller over TCP (NACHI-PEEL 1).",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -1,3 +1,3 @@
-"""Forward model (multi-scale CNN + attention + LSTM), offline training, MAML online learning, and
-the learner node.
+"""Offline training of the forward model (:mod:`peel_model`), MAML online learning, the replay
+pool, the held-out gate and the learner node.
 """

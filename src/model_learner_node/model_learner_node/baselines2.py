@@ -26,13 +26,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from peel_model.windows import Windows
 from peel_msgs_py.params import load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import BASELINE2_SPECS, TrainConfig
 from .maml import model_loss_fn, pool_trajectories, sample_batch
 from .replay import ReplayPool
-from .windows import Windows
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ class HistoryRetrainer:
         t0 = time.perf_counter()
         history = [t for t in pool_trajectories(pool) if t is not new_traj]
         history.append(new_traj)
-        pad = self.h - 1  # front padding as in offline training (model_learner_node.windows)
+        pad = self.h - 1  # front padding as in offline training (peel_model.windows)
         history = [t for t in history if len(t) + pad >= self.slice_len]
         if not history:
             return {"updated": False, "reason": "no trajectory long enough for a slice",

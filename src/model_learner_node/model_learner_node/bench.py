@@ -17,12 +17,13 @@ import time
 import numpy as np
 import torch
 
+from peel_model.config import ARCHS, load_model_config
+from peel_model.predictor import ForcePredictor, fit_normalization
 from peel_msgs_py.cliargs import ArgumentParser, positive_int
 
-from .config import ARCHS, load_model_config, load_train_config
+from .config import load_train_config
 from .devices import device_arg, resolve_device
 from .losses import total_loss
-from .predictor import ForcePredictor, fit_normalization
 from .replay import ReplayPool
 from .synthetic import synthetic_split
 

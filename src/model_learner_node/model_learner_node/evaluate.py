@@ -15,13 +15,13 @@ from pathlib import Path
 
 import torch
 
+from peel_model.checkpoint import jsonable, load_checkpoint
+from peel_model.validation import check_finite_outputs
+from peel_model.windows import stack_windows
 from peel_msgs_py.cliargs import ArgumentParser, run_main
 from peel_msgs_py.errors import PeelError
 
-from .checkpoint import jsonable, load_checkpoint
 from .metrics import evaluate_windows, persistence_metrics
-from .validation import check_finite_outputs
-from .windows import stack_windows
 
 PROG = "python -m model_learner_node.evaluate"
 

@@ -23,13 +23,14 @@ from typing import Any
 
 import numpy as np
 
+from peel_model.checkpoint import atomic_write_bytes, atomic_write_json
+from peel_model.config import ARCHS, ModelConfig
+from peel_model.windows import stack_windows, trajectory_windows
 from peel_msgs_py.trajectory import Trajectory
 
-from .checkpoint import atomic_write_bytes, atomic_write_json
-from .config import ARCHS, ModelConfig, TrainConfig
+from .config import TrainConfig
 from .metrics import persistence_metrics, predict_windows
 from .train import dataset_hash, train_and_save
-from .windows import stack_windows, trajectory_windows
 
 #: (name, arch, use_pene) of the trained runs.
 RUNS: tuple[tuple[str, str, bool], ...] = (

@@ -27,6 +27,8 @@ from typing import Any
 
 import torch
 
+from peel_model.checkpoint import jsonable
+from peel_model.config import load_model_config
 from peel_msgs_py.cliargs import (
     ArgumentParser,
     nonnegative_int,
@@ -35,8 +37,7 @@ from peel_msgs_py.cliargs import (
 )
 from peel_msgs_py.outputs import OutputDir
 
-from .checkpoint import jsonable
-from .config import load_model_config, load_train_config
+from .config import load_train_config
 from .devices import device_arg
 from .figures import run_figures
 

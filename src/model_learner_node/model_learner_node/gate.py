@@ -30,12 +30,12 @@ from typing import Any
 
 import numpy as np
 
+from peel_model.windows import Windows, trajectory_windows
 from peel_msgs_py.params import load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import GATE_SPECS
 from .metrics import predict_windows
-from .windows import Windows, trajectory_windows
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,7 @@ import torch
 from torch import Tensor
 from torch.func import functional_call, grad
 
+from peel_model.windows import Windows, padded_times
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.params import load_node_params, validate_group
 from peel_msgs_py.trajectory import Trajectory
@@ -53,7 +54,6 @@ from peel_msgs_py.trajectory import Trajectory
 from .config import MAML_SPECS, TrainConfig, load_train_config
 from .losses import mse_loss, pene_loss
 from .replay import ReplayPool
-from .windows import Windows, padded_times
 
 #: Score handicap of a trajectory that did not complete the task (see module docstring).
 FAILED_PENALTY: float = 1.0e6
@@ -151,11 +151,11 @@ def sample_batch(
 
     Each slice of ``slice_len`` samples starts at a random position of a random trajectory
     (:meth:`ReplayPool.sample_slices`) and yields its ``slice_len - h`` one-step windows
-    (:func:`model_learner_node.windows.windows_from_slices`). Trajectories are front-padded
+    (:func:`peel_model.windows.windows_from_slices`). Trajectories are front-padded
     with ``pad_front`` copies of sample 0 (default h - 1, as in offline training), so the start
     of a peel is in the data. Returns :class:`Windows` of torch tensors of ``dtype``;
     ``with_time`` adds ``t_next`` (the time of each window's sample k+1 in its task) for models
-    with time terms (:class:`~model_learner_node.compensated.CompensatedPredictor`).
+    with time terms (:class:`~peel_model.compensated.CompensatedPredictor`).
     """
     pool = trajs if isinstance(trajs, ReplayPool) else ReplayPool(
         trajs, pad_front=h - 1 if pad_front is None else pad_front)

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from .windows import Windows, stack_windows
+from peel_model.windows import Windows, stack_windows
 
 CHANNELS: tuple[str, ...] = ("fx", "fz")
 

@@ -4,17 +4,17 @@
 Algorithm 1 (:class:`~model_learner_node.maml.MetaLearner`, Eq. 26-27) or baseline 2
 (:class:`~model_learner_node.baselines2.HistoryRetrainer`) on each finished task and writes the
 updated weights atomically as ``out_dir/model_vNNNN.safetensors`` (+ JSON;
-:func:`~model_learner_node.checkpoint.save_checkpoint`: temporary file + ``os.replace``,
+:func:`~peel_model.checkpoint.save_checkpoint`: temporary file + ``os.replace``,
 safetensors only, never a pickle). ``NNNN`` only numbers the learner's files; the version the
-planner plans it under is the planner's to give (:mod:`model_learner_node.versions`), and each
+planner plans it under is the planner's to give (:mod:`peel_model.versions`), and each
 file's meta names it instead: ``producer`` (the learner node) and ``task`` (1-based)
-(:func:`~model_learner_node.versions.update_meta`).
+(:func:`~peel_model.versions.update_meta`).
 
 An update of Algorithm 1 is offered only when it earns its swap (:class:`~model_learner_node.gate.HeldOutGate`:
 fitted without the newest peel's end, no worse than the model in use on it; else ``skipped``
 with both errors named, the learner back on the weights in use; baseline 2 is the paper's), and
 any update only when it predicts finite forces on the probe batch
-(:func:`~model_learner_node.validation.check_finite_outputs`, the planner's own swap check): the
+(:func:`~peel_model.validation.check_finite_outputs`, the planner's own swap check): the
 starting model is refused at construction (:class:`~peel_msgs_py.errors.CheckpointError`, so
 the node exits 2), and an update that raises or fails the probe is reported ``failed`` with the
 learner back on its last good weights (and meta-optimiser state).
@@ -30,15 +30,15 @@ from typing import Any
 
 import numpy as np
 
+from peel_model.checkpoint import load_checkpoint, read_checkpoint_config, save_checkpoint, shipped_checkpoint
+from peel_model.validation import check_finite_outputs
+from peel_model.versions import update_meta
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import FAILED, OFFERED, SKIPPED, UpdateReport
 from peel_msgs_py.trajectory import Trajectory
 
-from .checkpoint import load_checkpoint, read_checkpoint_config, save_checkpoint, shipped_checkpoint
 from .gate import GateConfig, HeldOutGate
 from .replay import ReplayPool
-from .validation import check_finite_outputs
-from .versions import update_meta
 
 _NUMBER_RE = re.compile(r"model_v(\d+)")
 

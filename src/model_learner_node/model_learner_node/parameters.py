@@ -1,17 +1,16 @@
 """Every parameter ``model_learner_node`` declares, as plain data (no ROS): the model
-architecture (3.1), offline training (Eq. 23-25), MAML (Eq. 26-27, Algorithm 1), baseline 2,
-``peel residual``'s analysis (``residual.*``, docs/residual.md) and the node's own ``node.*``
-group. Registered under the ``peel.parameters`` entry point, so ``peel train``, ``peel
-residual`` and the node refuse the same unknown names. All read-only at run time. (No torch
+architecture (3.1), offline training (Eq. 23-25), MAML (Eq. 26-27, Algorithm 1), baseline 2
+and the node's own ``node.*`` group. Registered under the ``peel.parameters`` entry point, so
+``peel train`` and the node refuse the same unknown names. All read-only at run time. (No torch
 here: every command that reads a parameter file may load it.)
 """
 
 from __future__ import annotations
 
+from peel_model.config import MODEL_SPECS
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 
-from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, MODEL_SPECS, TRAIN_SPECS
-from .residual.params import RESIDUAL_SPECS
+from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, TRAIN_SPECS
 
 NODE_NAME = "model_learner_node"
 
@@ -30,4 +29,4 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 
 #: Everything the node declares.
 SPECS: tuple[ParamSpec, ...] = (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *GATE_SPECS, *BASELINE2_SPECS,
-                                 *RESIDUAL_SPECS, *NODE_SPECS, USE_SIM_TIME)
+                                 *NODE_SPECS, USE_SIM_TIME)

@@ -3,7 +3,7 @@
 The pool stores *whole* trajectories; a batch is ``n`` fixed-length slices, each cut at a uniformly
 random start of a uniformly random trajectory (among those long enough), so a slice never crosses
 the end of a trajectory and never joins two of them. Turn slices into model samples with
-:func:`model_learner_node.windows.windows_from_slices`. Sampling uses only the generator passed in,
+:func:`peel_model.windows.windows_from_slices`. Sampling uses only the generator passed in,
 so a seed fixes the batch.
 """
 
@@ -15,10 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from peel_model.windows import Windows, padded_arrays, windows_from_slices
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
-
-from .windows import Windows, padded_arrays, windows_from_slices
 
 
 @dataclass
@@ -41,7 +40,7 @@ class ReplayPool:
 
     ``capacity``: keep at most this many trajectories (oldest dropped first); ``None`` = unbounded.
     ``pad_front``: rows of sample 0 prepended to each stored trajectory (see
-    :mod:`model_learner_node.windows`); offline training uses h-1, the paper's plain pool 0.
+    :mod:`peel_model.windows`); offline training uses h-1, the paper's plain pool 0.
     """
 
     def __init__(

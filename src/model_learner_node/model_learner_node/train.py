@@ -26,17 +26,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from peel_model.checkpoint import atomic_write_json, checkpoint_paths, save_checkpoint
+from peel_model.config import ModelConfig
+from peel_model.predictor import ForcePredictor, fit_normalization
+from peel_model.windows import stack_windows
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
-from .checkpoint import atomic_write_json, checkpoint_paths, save_checkpoint
-from .config import ModelConfig, TrainConfig
+from .config import TrainConfig
 from .devices import resolve_device
 from .losses import total_loss
 from .metrics import evaluate_windows, persistence_metrics
-from .predictor import ForcePredictor, fit_normalization
 from .replay import ReplayPool
-from .windows import stack_windows
 
 
 @dataclass

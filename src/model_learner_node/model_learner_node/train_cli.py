@@ -5,7 +5,7 @@ From a dataset written by ``peel dataset`` (splits train / val / test)::
     peel train --data DIR --arch {ours,mlp,cnn-lstm} [--no-pene] --out CKPT [--epochs E] [--seed S]
 
 From recorded MCAP bags (the path real-robot data takes): the ``/peel/trajectory`` messages are
-extracted with :func:`peel_msgs_py.bagread.read_trajectories`, split by trajectory into a
+extracted with :func:`peel_bag.bagread.read_trajectories`, split by trajectory into a
 training and a hold-out part (``--val-fraction``, seeded), and ``--init`` is fine-tuned; its
 normalisation is kept::
 
@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from peel_model.checkpoint import jsonable, load_checkpoint
+from peel_model.config import ARCHS, load_model_config
 from peel_msgs_py.cliargs import (
     ArgumentParser,
     float_arg,
@@ -34,8 +36,7 @@ from peel_msgs_py.cliargs import (
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.outputs import check_output_files
 
-from .checkpoint import jsonable, load_checkpoint
-from .config import ARCHS, load_model_config, load_train_config
+from .config import load_train_config
 from .devices import device_arg
 from .train import output_paths, train_and_save
 
@@ -108,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.from_bags:
         if init is None:
             raise PeelError("--from-bags needs --init CKPT (the model to fine-tune)")
-        from peel_msgs_py.bagread import read_trajectories
+        from peel_bag.bagread import read_trajectories
 
         trajs = []
         for bag in args.from_bags:

@@ -13,7 +13,7 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
   goes to the planner only;
 * every node gets ``share/peel_bringup/config/<node>.yaml``, then the override file (if any),
   then ``use_sim_time: true`` and the settings below;
-* ``record:=BAG`` adds the recorder (``ros2 run peel_msgs_py peel_recorder --out BAG``, the
+* ``record:=BAG`` adds the recorder (``ros2 run peel_bag peel_recorder --out BAG``, the
   same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
 * the simulator (or the bridge) exits after the K tasks and the learner's last swap
   (``node.exit_when_done``); its exit, or any node's death, shuts the whole launch down (the
@@ -74,7 +74,7 @@ def _setup(context, *args, **kwargs):
         )
         actions.append(nodes[name])
     if arg["record"]:
-        actions.insert(0, Node(package="peel_msgs_py", executable="peel_recorder",
+        actions.insert(0, Node(package="peel_bag", executable="peel_recorder",
                                name="peel_recorder", output="screen", sigterm_timeout="20",
                                arguments=["--out", arg["record"]]))
     # the simulator or the bridge finishing (or any node dying) ends the launch

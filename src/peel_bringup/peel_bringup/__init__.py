@@ -1,1 +1,1 @@
-"""The peel command, the graph launcher, the experiments and the launch file."""
+"""The peel command, the graph launcher, the demo and the launch file."""

@@ -22,15 +22,15 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "dataset": ("peel_sim_node.dataset_cli:main", "generate a simulator or plant dataset (3.2)"),
     "train": ("model_learner_node.train_cli:main", "train the forward model offline (3.3)"),
     "figures": ("model_learner_node.figures_cli:main", "Fig. 9 and Fig. 10: loss ablation and model comparison"),
-    "bench": ("peel_bringup.bench:main", "benchmarks printing JSON: sim, model, planner, ros, nachi, nachi-graph"),
-    "experiment": ("peel_bringup.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
+    "bench": ("peel_experiments.bench:main", "benchmarks printing JSON: sim, model, planner, ros, nachi, nachi-graph"),
+    "experiment": ("peel_experiments.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
-    "record": ("peel_msgs_py.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
-    "nachi-emulator": ("peel_nachi_bridge.emulator_cli:main",
+    "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
+    "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
-    "soak": ("peel_bringup.soak:main", "many consecutive peels through the graph: safety stops, "
+    "soak": ("peel_experiments.soak:main", "many consecutive peels through the graph: safety stops, "
              "every node's memory"),
-    "residual": ("model_learner_node.residual.cli:main",
+    "residual": ("peel_residual.cli:main",
                  "trace the model's residual on bags to physical effects, add them, report"),
 }
 

@@ -3,9 +3,9 @@
     peel demo [--tasks 3] [--out DIR [--force]] [--params FILE] [--seed S] [--plant plant|sim]
 
 Runs ``peel graph --plant plant --tasks 3 --record OUT/bag`` with the shipped checkpoint (the
-planner starts from :func:`model_learner_node.checkpoint.shipped_checkpoint`; the learner's
+planner starts from :func:`peel_model.checkpoint.shipped_checkpoint`; the learner's
 Algorithm 1 updates it after every task), prints one line per task, then reads the bag back
-with ``rosbags`` (:mod:`peel_msgs_py.bagread`) and draws, per task, the blade velocity (measured
+with ``rosbags`` (:mod:`peel_bag.bagread`) and draws, per task, the blade velocity (measured
 v and command u) and the contact forces F_RX, F_RZ against the task time: ``OUT/demo.png``.
 ``OUT/demo.md`` (with ``OUT/summary.json`` beside it) describes the run.
 """
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     if not bag.exists():
         print("peel demo: error: no bag was recorded", file=sys.stderr)
         return status or 1
-    from peel_msgs_py.bagread import read_topics
+    from peel_bag.bagread import read_topics
 
     topics = read_topics(bag)
     tasks = split_tasks(topics)

@@ -55,9 +55,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from peel_bag.bag import repair_hint
 from peel_msgs_py import discovery, held_signals
 from peel_msgs_py.atomic import atomic_write_text
-from peel_msgs_py.bag import repair_hint
 from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import DomainTaken, PeelError
 from peel_msgs_py.outputs import OutputDir, check_location, check_new_path
@@ -390,7 +390,7 @@ def children_of(run: Run) -> list[Child]:
     sets = run.settings()
     children: list[Child] = []
     if run.bag is not None:
-        children.append(Child(RECORDER, [sys.executable, "-m", "peel_msgs_py.recorder_cli",
+        children.append(Child(RECORDER, [sys.executable, "-m", "peel_bag.recorder_cli",
                                          "--out", str(run.bag)], logs / "recorder.log"))
     bridge = NACHI if run.plant == "nachi" else "peel_sim_node"
     for name in ("model_learner_node", "peel_planner_node", bridge):

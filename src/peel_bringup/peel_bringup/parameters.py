@@ -28,13 +28,13 @@ GRAPH_SPECS: tuple[ParamSpec, ...] = (
 
 
 def _specs() -> tuple[ParamSpec, ...]:
-    from .experiment import EXPERIMENT_SPECS
+    from peel_experiments.experiment import EXPERIMENT_SPECS
 
     return (*GRAPH_SPECS, *EXPERIMENT_SPECS)
 
 
 def __getattr__(name: str) -> tuple[ParamSpec, ...]:
-    """``SPECS`` on first use (the experiment groups live in :mod:`peel_bringup.experiment`)."""
+    """``SPECS`` on first use (the experiment groups live in :mod:`peel_experiments.experiment`)."""
     if name == "SPECS":
         return _specs()
     raise AttributeError(name)

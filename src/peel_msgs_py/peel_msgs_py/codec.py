@@ -93,18 +93,9 @@ def trajectory_to_layout(traj: Trajectory) -> tuple[list[tuple[str, int, int]], 
     return dims, 0, data
 
 
-def trajectory_to_msg(traj: Trajectory) -> Any:
-    """A ``std_msgs/msg/Float64MultiArray`` (rclpy) holding ``traj`` (layout above).
-
-    Imports the generated message classes (through :mod:`peel_msgs_py.ros.messages`) on call.
-    """
-    from .ros.messages import trajectory_msg
-
-    return trajectory_msg(traj)
-
-
 def trajectory_from_msg(msg: Any) -> Trajectory:
-    """Inverse of :func:`trajectory_to_msg` for any message object with ``layout`` and ``data``
+    """Inverse of :func:`peel_msgs_py.ros.messages.trajectory_msg` (which builds the rclpy
+    message from :func:`trajectory_to_layout`) for any message object with ``layout`` and ``data``
     (rclpy's, ``rosbags``', ``mcap-ros2-support``'s).
 
     Raises :class:`PeelError` naming the offending field when the layout is not ours.

@@ -5,7 +5,7 @@ task k, by identity (docs/graph.md, "The model swap"). No ROS here.
 
 * :class:`ModelRecord` (``/peel/model_info``, latched, published by the planner on every
   accepted model): the version the planner allocated (0 = starting model, +1 per accepted swap,
-  never taken from a file name; :class:`model_learner_node.versions.ModelLedger`) and the
+  never taken from a file name; :class:`peel_model.versions.ModelLedger`) and the
   model's identity: SHA-256 of its safetensors file, path, and for an update of Algorithm 1 the
   ``producer`` (the learner node's name) and ``task`` (1-based) from the checkpoint's meta.
 * :class:`UpdateReport` (``/peel/model_update``, published by the learner once per finished

@@ -32,6 +32,9 @@ from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import DynamicsConfig
+from .fused_dynamics import FusedDynamics
+from .fused_weights import fused_support
+from .history import history_window
 
 _LOG = logging.getLogger(__name__)
 
@@ -43,24 +46,6 @@ class Dynamics(Protocol):
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         """Predicted (q_mm, fx_N, fz_N) [N, S, 3] for velocities ``v`` [N, S] (mm/s)."""
         ...
-
-
-def history_window(history: Trajectory, h: int) -> np.ndarray:
-    """The last ``h`` state rows [q, v, fx, fz] of ``history`` (Eq. 2), shape (h, 4).
-
-    A history shorter than h (the first control periods of a task) is padded at the front with
-    its first row with v = 0: the blade stood still at C before the task started.
-    """
-    if len(history) == 0:
-        raise PeelError("history 't' is empty: the planner needs at least the sample at t=0")
-    rows = history.states()[-h:]
-    if not np.all(np.isfinite(rows)):
-        raise PeelError("history holds non-finite q, v, fx or fz in its last samples")
-    if rows.shape[0] < h:
-        first = rows[:1].copy()
-        first[0, 1] = 0.0
-        rows = np.concatenate([np.repeat(first, h - rows.shape[0], axis=0), rows], axis=0)
-    return rows
 
 
 class ReferenceDynamics:
@@ -142,9 +127,6 @@ def learned_dynamics(predictor: Any, config: DynamicsConfig | None = None) -> An
     when configured and the model supports it, else the reference (the reason is logged)."""
     config = config if config is not None else DynamicsConfig()
     if config.implementation == "fused":
-        from .fused_dynamics import FusedDynamics
-        from .fused_weights import fused_support
-
         reason = fused_support(predictor)
         if reason is None:
             return FusedDynamics(predictor, dt_s=config.dt_s, config=config.fused)

@@ -29,9 +29,9 @@ from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import FusedConfig
-from .dynamics import history_window
 from .fused import FusedRollout
 from .fused_weights import FusedWeights, fused_support
+from .history import history_window
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 

@@ -27,8 +27,8 @@ def fused_support(predictor: Any) -> str | None:
     """None when the fused rollout computes ``predictor.predict`` exactly, else the reason why
     not. Exact types, not ``isinstance``: a subclass may change what ``predict`` computes."""
     try:
-        from model_learner_node.model import LSTM, ConvAttentionLSTM, MultiScaleConv, ScaleAttention
-        from model_learner_node.predictor import ForcePredictor
+        from peel_model.model import LSTM, ConvAttentionLSTM, MultiScaleConv, ScaleAttention
+        from peel_model.predictor import ForcePredictor
     except ImportError:  # pragma: no cover - the package is a declared dependency
         return "model_learner_node is not importable"
     if type(predictor) is not ForcePredictor:

@@ -7,7 +7,7 @@ Holds the forward model; the model swap is its standard parameter service: setti
 ``model.path`` runs :func:`~peel_planner_node.model_check.validate_model` in the on-set callback
 and either swaps the model in between two planning cycles (callbacks of one executor thread) or
 refuses with the reason, keeping the old model. Versions come from a
-:class:`~model_learner_node.versions.ModelLedger` (0 = the starting model, +1 per accepted swap,
+:class:`~peel_model.versions.ModelLedger` (0 = the starting model, +1 per accepted swap,
 whoever asked for it and whatever the file is called); the active version goes out on
 ``/peel/model_version`` (Int64, transient local) and, with the model's identity (SHA-256,
 producer and task of a learner update), on ``/peel/model_info`` (JSON, transient local).
@@ -31,7 +31,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Int64, String
 
-from model_learner_node.versions import ModelLedger
+from peel_model.versions import ModelLedger
 from peel_msgs_py import codec, topics
 from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
@@ -190,7 +190,7 @@ class PlannerNode(NamedRefusals, Node):
 
     def check_model(self, value: str) -> tuple[Any, tuple[str, str | None, int | None]]:
         """The predictor and its identity (SHA-256, producer, task), or PeelError."""
-        from model_learner_node.versions import identify
+        from peel_model.versions import identify
 
         if not value:
             raise PeelError("model swap refused: model.path must be a non-empty string")

@@ -32,12 +32,12 @@ from .env import PeelEnv, sample_params
 
 def task_seed(seed: int, k: int) -> int:
     """Sensor-noise and planner-noise seed of task ``k``: the derivation of ``peel experiment``
-    (``peel_bringup.experiment.task_seed``, stream 0)."""
+    (``peel_experiments.experiment.task_seed``, stream 0)."""
     return int(np.random.SeedSequence([seed, 0, k]).generate_state(1)[0])
 
 
 def task_params(cfg: Any, seed: int, k: int, source: str) -> dict[str, float]:
-    """Physical parameters of task ``k`` (3.2.1 intervals), as ``peel_bringup.experiment``."""
+    """Physical parameters of task ``k`` (3.2.1 intervals), as ``peel_experiments.experiment``."""
     return dict(sample_params(cfg, np.random.default_rng([seed, 0, k]), source))
 
 

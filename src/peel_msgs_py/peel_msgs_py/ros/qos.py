@@ -1,4 +1,4 @@
-"""QoS: the topic table's plain :class:`~peel_msgs_py.topics.QosSpec` as an rclpy
+"""QoS: the topic table's plain :class:`~peel_msgs_py.qos.QosSpec` as an rclpy
 ``QoSProfile``, and an rclpy profile (a publisher's, from its endpoint info) as the
 ``offered_qos_profiles`` entry rosbag2 writes into a bag.
 """
@@ -10,7 +10,7 @@ from typing import Any
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
-from ..topics import KEEP_LAST, RELIABLE, TRANSIENT_LOCAL, QosSpec
+from ..qos import KEEP_LAST, RELIABLE, TRANSIENT_LOCAL, QosSpec
 
 #: rmw's "infinite" duration as rosbag2 (Jazzy) writes it.
 _INFINITE = {"sec": 9223372036, "nsec": 854775807}

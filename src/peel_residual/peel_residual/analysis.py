@@ -1,0 +1,230 @@
+"""The residual analysis end to end: split, residual, trace, correction, error before and after.
+
+1. Split the tasks, seeded, into fit tasks and held-out tasks (``holdout`` share, at least one
+   each); everything is fitted on the fit tasks and every reported error is on the held-out
+   ones.
+2. **Residual** of the model on the fit tasks, one step ahead (:mod:`.predict`); the samples
+   whose history reaches before the task start (padded, :mod:`peel_model.windows`) are
+   left out of the fit: their input is the padding convention, not a measurement.
+3. **Trace** each channel (:mod:`.trace`): force channels against the candidates' one-step
+   responses, the speed channel (v_{k+1} - u_k) against the velocity candidates.
+4. **Add** the named terms: :class:`~peel_model.compensated.CompensatedPredictor`.
+5. **Remains** (:mod:`.structure`), and **error before / after** on the held-out tasks
+   (:mod:`.evaluate`), one step and open loop over the planner's horizon.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from peel_model.compensated import CompensatedPredictor
+from peel_model.effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Rows, Term
+from peel_msgs_py.errors import PeelError
+from peel_msgs_py.trajectory import Trajectory
+
+from . import evaluate as E
+from . import predict as P
+from .config import ResidualConfig
+from .data import Horizons, Steps, horizons, one_step_samples
+from .structure import Structure, one_step_structure, open_loop_drift, state_variables
+from .trace import Column, OpenLoopScore, Problem, Trace, trace
+
+
+@dataclass
+class Result:
+    """Everything the report shows (:mod:`.report`)."""
+
+    traces: dict[str, Trace]
+    terms: list[Term]
+    corrected: Any | None
+    fit_tasks: list[int]
+    holdout_tasks: list[int]
+    rmse_before: dict[str, dict[str, float | None]]
+    rmse_after: dict[str, dict[str, float | None]]
+    by_step_before: dict[str, list[float | None]]
+    by_step_after: dict[str, list[float | None]]
+    structure: list[Structure]
+    drift: dict[str, dict[str, Any]]
+    shares: list[dict[str, Any]]
+    samples: dict[str, int]
+    plots: dict[str, Any] = field(default_factory=dict)
+
+
+def split_tasks(n: int, fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """(fit, held-out) task indices: a seeded permutation, ``round(fraction n)`` held out."""
+    if n < 3:
+        raise PeelError(f"{n} task(s): the split needs at least 3 (2 to fit, 1 to hold out)")
+    n_hold = min(n - 2, max(1, round(fraction * n)))
+    order = np.random.default_rng(seed).permutation(n)
+    return sorted(order[n_hold:].tolist()), sorted(order[:n_hold].tolist())
+
+
+def corrected_model(model: Any, terms: Sequence[Term], dt_s: float) -> CompensatedPredictor:
+    """``model`` with ``terms`` added; a term the model already has gets the coefficients added."""
+    base, old = (model.base, list(model.terms)) if isinstance(model, CompensatedPredictor) \
+        else (model, [])
+    merged = {(t.candidate.key, t.channel): t for t in old}
+    for t in terms:
+        prev = merged.get((t.candidate.key, t.channel))
+        if prev is not None:
+            t = Term(t.candidate, t.channel, tuple(a + b for a, b in zip(prev.coef, t.coef,
+                                                                          strict=True)), t.coef_std)
+        merged[(t.candidate.key, t.channel)] = t
+    return CompensatedPredictor(base, list(merged.values()), dt_s=dt_s)
+
+
+def open_loop_scorer(model: Any, hz: Horizons, weights: dict[str, float],
+                     dt_s: float) -> OpenLoopScore:
+    """Held-out open-loop SSE, summed over the channels in ``weights`` (each times its weight),
+    on the horizons of some tasks, for terms added to ``model`` (:mod:`.trace`, criteria b, c)."""
+    cache: dict[tuple, float] = {}
+
+    def score(terms: list, test_tasks: np.ndarray) -> float:
+        key = tuple(test_tasks.tolist())
+        if not terms and key in cache:
+            return cache[key]
+        try:
+            m = corrected_model(model, [Term(c, ch, tuple(float(x) for x in coef))
+                                        for c, ch, coef in terms], dt_s) if terms else model
+        except PeelError:  # e.g. an unstable lag fitted on one fold: no better than nothing
+            return score([], test_tasks)
+        sub = hz.subset(np.isin(hz.task, test_tasks))
+        out = 0.0
+        if VELOCITY_CHANNEL in weights:
+            err = sub.rows[:, -sub.steps:, 1] - P.speed_open_loop(m, sub)
+            out += weights[VELOCITY_CHANNEL] * _masked_sse(err, sub.valid)
+        forces = [ch for ch in FORCE_CHANNELS if ch in weights]
+        if forces:
+            pred = P.open_loop(m, sub)
+            for ch in forces:
+                i = FORCE_CHANNELS.index(ch)
+                err = sub.rows[:, -sub.steps:, 2 + i] - pred[:, :, i]
+                out += weights[ch] * _masked_sse(err, sub.valid)
+        if not terms:
+            cache[key] = out
+        return out
+
+    return score
+
+
+def _masked_sse(err: np.ndarray, valid: np.ndarray) -> float:
+    return float(np.sum(np.where(valid & np.isfinite(err), err, 0.0) ** 2))
+
+
+def _force_trace(model: Any, s: Steps, hz: Horizons, cfg: ResidualConfig,
+                 rng: np.random.Generator, dt_s: float) -> tuple[Trace, dict[str, Any]]:
+    """Both force channels in one stacked regression, rows scaled by their RMS residual."""
+    pred = P.one_step(model, s)
+    grad = P.history_gradient(model, s)
+    force = [c for c in cfg.candidates if set(c.spec.channels) & set(FORCE_CHANNELS)]
+    resp = P.term_responses(s, pred, grad, force, dt_s)
+    y = s.f_next - pred
+    rms = np.sqrt(np.mean(y ** 2, axis=0))
+    rms = np.where(rms > 1e-12, rms, 1.0)
+    ys = np.concatenate([y[:, 0] / rms[0], y[:, 1] / rms[1]])
+    cols = [Column(c, ch, np.concatenate([J[:, 0, :] / rms[0], J[:, 1, :] / rms[1]]))
+            for (_, ch), (c, J) in resp.items()]
+    n = len(s)
+    weights = {ch: 1.0 / float(rms[i]) ** 2 for i, ch in enumerate(FORCE_CHANNELS)}
+    prob = Problem.build(ys, np.concatenate([s.task, s.task]),
+                         np.array(["fx"] * n + ["fz"] * n), cfg.folds,
+                         open_loop_scorer(model, hz, weights, dt_s))
+    tr = trace("force", prob, cols, cfg, rng)
+    plot = {"y": y, "rms": rms, "cols": {(c.candidate.key, c.channel): c.X for c in cols}}
+    return tr, plot
+
+
+def _speed_trace(model: Any, s: Steps, hz: Horizons, cfg: ResidualConfig,
+                 rng: np.random.Generator, dt_s: float) -> tuple[Trace | None, dict[str, Any]]:
+    ok = np.isfinite(s.u)
+    if ok.sum() < 10 or len(np.unique(s.task[ok])) < 2:
+        return None, {}
+    v_k = s.hist[ok, -1, 1]
+    rows = Rows(q=torch.zeros(int(ok.sum()), dtype=torch.float64),
+                v=torch.as_tensor(v_k), u=torch.as_tensor(s.u[ok]))
+    y = s.v_next[ok] - P.speed_one_step(model, v_k, s.u[ok])
+    cols = [Column(c, VELOCITY_CHANNEL, c.basis(rows).numpy()) for c in cfg.candidates
+            if VELOCITY_CHANNEL in c.spec.channels]
+    prob = Problem.build(y, s.task[ok], np.array([VELOCITY_CHANNEL] * len(y)), cfg.folds,
+                         open_loop_scorer(model, hz, {VELOCITY_CHANNEL: 1.0}, dt_s))
+    tr = trace(VELOCITY_CHANNEL, prob, cols, cfg, rng)
+    return tr, {"y": y, "cols": {(c.candidate.key, c.channel): c.X for c in cols}, "ok": ok}
+
+
+def terms_of(traces: dict[str, Trace]) -> list[Term]:
+    """The named findings as compensation terms."""
+    return [Term(f.candidate, f.channel, tuple(float(c) for c in f.coef),
+                 tuple(float(c) for c in f.coef_std))
+            for tr in traces.values() for f in tr.findings]
+
+
+def _held_out(model: Any, corrected: Any | None, hold: list[Trajectory], h: int,
+              cfg: ResidualConfig) -> tuple[E.Errors, E.Errors, dict[str, Any], list[Any]]:
+    """Errors before and after on the held-out tasks, the open-loop drift left after the
+    correction (mean residual at each horizon's last valid step), each term's share."""
+    s_h, hz_h = E.held_out(hold, h, cfg.horizon_steps, cfg.stride)
+    before = E.errors(model, s_h, hz_h)
+    after = E.errors(corrected, s_h, hz_h) if corrected is not None else before
+    end = np.array([np.flatnonzero(v)[-1] if v.any() else -1 for v in hz_h.valid])
+    keep = np.flatnonzero(end >= 0)
+    drift = {ch: open_loop_drift(after.open_loop[keep, end[keep], i], hz_h.task[keep])
+             for i, ch in enumerate(FORCE_CHANNELS)}
+    shares = E.term_shares(corrected, before, s_h, hz_h) if corrected is not None else []
+    return before, after, drift, shares
+
+
+#: The stages :func:`analyse` reports to its ``progress`` callback.
+STAGES: tuple[str, ...] = ("residual and trace (forces)", "trace (speed)", "what remains",
+                           "error before/after")
+
+
+def analyse(tasks: Sequence[Trajectory], model: Any, cfg: ResidualConfig, *,
+            dt_s: float = 0.1, progress: Callable[[str], None] | None = None) -> Result:
+    """Steps 1-5 of the module docstring; ``dt_s`` is the model's sample period;
+    ``progress(stage)`` is called after each of :data:`STAGES`."""
+    tick = progress or (lambda stage: None)
+    h = int(model.h)
+    fit_idx, hold_idx = split_tasks(len(tasks), cfg.holdout, cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    fit_tasks = [tasks[i] for i in fit_idx]
+    fit_all = one_step_samples(fit_tasks, h)
+    fit = fit_all.subset(fit_all.k >= h - 1)
+    if len(np.unique(fit.task)) < 2:
+        raise PeelError("fewer than 2 fit tasks have samples past the first h - 1")
+    # the open-loop criteria of the trace score every second control period of the fit tasks
+    hz_fit = horizons(fit_tasks, h, cfg.horizon_steps, 2 * cfg.stride)
+    force, fplot = _force_trace(model, fit, hz_fit, cfg, rng, dt_s)
+    traces, plots = {"force": force}, {"force": fplot}
+    tick(STAGES[0])
+    speed, vplot = _speed_trace(model, fit, hz_fit, cfg, rng, dt_s)
+    if speed is not None:
+        traces[VELOCITY_CHANNEL], plots[VELOCITY_CHANNEL] = speed, vplot
+    tick(STAGES[1])
+    terms = terms_of(traces)
+    corrected = corrected_model(model, terms, dt_s) if terms else None
+    after_model = corrected if corrected is not None else model
+
+    y_after = fit.f_next - P.one_step(after_model, fit)
+    X = state_variables(fit)
+    structure = [one_step_structure(ch, y_after[:, i], X, fit.task, cfg.folds,
+                                    cfg.min_structure, cfg.seed)
+                 for i, ch in enumerate(FORCE_CHANNELS)]
+    tick(STAGES[2])
+
+    before, after, drift, shares = _held_out(model, corrected, [tasks[i] for i in hold_idx],
+                                             h, cfg)
+    tick(STAGES[3])
+    return Result(
+        traces=traces, terms=terms, corrected=corrected, fit_tasks=fit_idx,
+        holdout_tasks=hold_idx, rmse_before=before.rmse(), rmse_after=after.rmse(),
+        by_step_before=before.by_step(), by_step_after=after.by_step(),
+        structure=structure, drift=drift, shares=shares,
+        samples={"fit_one_step": len(fit), "holdout_one_step": len(before.one_step),
+                 "holdout_open_loop_runs": len(before.open_loop),
+                 "horizon_steps": cfg.horizon_steps},
+        plots={"traces": plots, "fit": fit, "X": X, "y_after": y_after})

@@ -1,0 +1,126 @@
+"""The model's predictions on recorded samples, and the response to a candidate term.
+
+* :func:`one_step`: F_{k+1} from the measured history (Eq. 1), every sample;
+* :func:`open_loop`: S model steps fed the model's *own* predicted forces and the *measured*
+  speeds (and q), as MPPI uses the model (Algorithm 2 line 9) -- the residual that shows an
+  effect which the one-step prediction partly sees in its force history;
+* :func:`term_responses`: how one model step changes when a candidate term g = c phi is added
+  as compensation, F = f(x - g, v) + g (:mod:`peel_model.compensated`), per unit c:
+  d F_{k+1} / d c = e_ch phi(x_{k+1}) - sum_j dF_{k+1}/dF_j phi(x_j), with the model's gradient
+  with respect to its force history from autograd (exact linearisation at c = 0);
+* :func:`speed_one_step` / :func:`speed_open_loop`: the robot's speed from the commands, Eq. 2's
+  mean v = u, or with the velocity terms of a compensated model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from peel_model.effect_terms import FORCE_CHANNELS, Candidate, Rows
+
+from .data import Horizons, Steps
+
+_CHUNK = 4096
+
+
+def _dtype(model: Any) -> torch.dtype:
+    return next(model.parameters()).dtype
+
+
+def _kwargs(model: Any, t_next: torch.Tensor) -> dict:
+    return {"t_next": t_next} if getattr(model, "needs_time", False) else {}
+
+
+@torch.no_grad()
+def one_step(model: Any, s: Steps) -> np.ndarray:
+    """Predicted F_{k+1} ``[n, 2]`` for every sample."""
+    dt = _dtype(model)
+    out = []
+    for a in range(0, len(s), _CHUNK):
+        b = slice(a, a + _CHUNK)
+        hist = torch.as_tensor(s.hist[b], dtype=dt)
+        out.append(model.predict(hist, torch.as_tensor(s.v_next[b], dtype=dt),
+                                 **_kwargs(model, torch.as_tensor(s.t_next[b], dtype=dt))))
+    return torch.cat(out).double().numpy() if out else np.zeros((0, 2))
+
+
+@torch.no_grad()
+def open_loop(model: Any, hz: Horizons) -> np.ndarray:
+    """Predicted forces ``[n, S, 2]`` over each horizon, fed back into the history."""
+    dt = _dtype(model)
+    h, steps = int(model.h), hz.steps
+    out = []
+    for a in range(0, len(hz), _CHUNK):
+        b = slice(a, a + _CHUNK)
+        buf = torch.as_tensor(hz.rows[b], dtype=dt).clone()
+        t = torch.as_tensor(hz.t[b], dtype=dt)
+        for k in range(steps):
+            buf[:, h + k, 2:4] = model.predict(buf[:, k:k + h], buf[:, h + k, 1],
+                                               **_kwargs(model, t[:, h + k]))
+        out.append(buf[:, h:, 2:4])
+    return torch.cat(out).double().numpy() if out else np.zeros((0, steps, 2))
+
+
+def history_gradient(model: Any, s: Steps) -> np.ndarray:
+    """dF_{k+1} / dF_j: ``[n, 2 (output), h (row j), 2 (input channel)]``."""
+    dt = _dtype(model)
+    out = []
+    for a in range(0, len(s), _CHUNK):
+        b = slice(a, a + _CHUNK)
+        hist = torch.as_tensor(s.hist[b], dtype=dt).clone().requires_grad_(True)
+        pred = model.predict(hist, torch.as_tensor(s.v_next[b], dtype=dt),
+                             **_kwargs(model, torch.as_tensor(s.t_next[b], dtype=dt)))
+        grads = []
+        for o in range(2):
+            (g,) = torch.autograd.grad(pred[:, o].sum(), hist, retain_graph=o == 0)
+            grads.append(g[:, :, 2:4])
+        out.append(torch.stack(grads, dim=1).detach().double())
+    return torch.cat(out).numpy()
+
+
+def term_responses(s: Steps, pred: np.ndarray, grad: np.ndarray,
+                   candidates: Sequence[Candidate], dt_s: float
+                   ) -> dict[tuple[str, str], tuple[Candidate, np.ndarray]]:
+    """``{(candidate key, channel): (candidate, J [n, 2 (output), n_basis])}`` for the force
+    candidates: the change of the one-step prediction per unit coefficient (module docstring)."""
+    h = s.hist.shape[1]
+    q = np.concatenate([s.hist[:, :, 0], (s.hist[:, -1, 0] + s.v_next * dt_s)[:, None]], 1)
+    v = np.concatenate([s.hist[:, :, 1], s.v_next[:, None]], 1)
+    t = s.t_next[:, None] - dt_s * np.arange(h, -1, -1)[None, :]
+    f = np.concatenate([s.hist[:, :, 2:4], pred[:, None, :]], 1)
+    rows = Rows(q=torch.as_tensor(q), v=torch.as_tensor(v), t=torch.as_tensor(t),
+                f=torch.as_tensor(f))
+    out: dict[tuple[str, str], tuple[Candidate, np.ndarray]] = {}
+    for cand in candidates:
+        for ch_name in FORCE_CHANNELS:
+            if ch_name not in cand.spec.channels:
+                continue
+            ch = FORCE_CHANNELS.index(ch_name)
+            phi = cand.basis(rows, ch).numpy()  # [n, h+1, nb]
+            resp = -np.einsum("noj,njb->nob", grad[:, :, :, ch], phi[:, :h])
+            resp[:, ch, :] += phi[:, h]
+            out[(cand.key, ch_name)] = (cand, resp)
+    return out
+
+
+def speed_one_step(model: Any | None, v_k: np.ndarray, u_k: np.ndarray) -> np.ndarray:
+    """v_{k+1} predicted from u_k (and v_k): Eq. 2's mean u_k, or the model's speed response."""
+    if model is None or not getattr(model, "velocity_terms", None):
+        return u_k.copy()
+    with torch.no_grad():
+        return model.speed(torch.as_tensor(u_k), torch.as_tensor(v_k)).numpy()
+
+
+def speed_open_loop(model: Any | None, hz: Horizons) -> np.ndarray:
+    """Speeds ``[n, S]`` over each horizon from the commands alone (from the measured v_k)."""
+    h = hz.rows.shape[1] - hz.steps
+    prev = hz.rows[:, h - 1, 1].copy()
+    out = np.empty(hz.u.shape)
+    for k in range(hz.steps):
+        prev = speed_one_step(model, prev, hz.u[:, k])
+        out[:, k] = prev
+    return out
