@@ -14,7 +14,7 @@ would get them. ``--plant nachi`` starts the bridge to the Nachi robot controlle
 bridge's place; it publishes the same topics, so nothing else changes. ``--effect`` adds a user
 effect to the simulated plant (the simulator node's ``node.effects``; docs/residual.md); the
 names are imported before anything starts. ``--live [PORT]`` adds the live view
-(``peel_live``, :mod:`.live`): the running graph on a Foxglove WebSocket server at
+(``peel_live``, :mod:`.live_node`): the running graph on a Foxglove WebSocket server at
 ``ws://127.0.0.1:PORT`` (default 8765; ``--live-host`` binds another address), its port checked
 free before anything starts; without ``--live`` nothing imports the Foxglove SDK. Every node's parameters
 are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
@@ -74,7 +74,7 @@ NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
 #: The node that stands in for ``peel_sim_node`` with ``--plant nachi`` (docs/nachi.md).
 NACHI = "peel_nachi_bridge"
 RECORDER = "recorder"
-#: The live view's process (``--live``, :mod:`.live`), its default port (Foxglove's) and the
+#: The live view's process (``--live``, :mod:`.live_node`), its default port (Foxglove's) and the
 #: only address it binds by default.
 LIVE = "peel_live"
 LIVE_PORT = 8765
@@ -424,10 +424,10 @@ def check_effects(specs: Sequence[str], plant: str) -> tuple[str, ...]:
 
 
 def live_command(run: Run) -> list[str]:
-    """``python -m peel_bringup.live --host H --port P [--params FILE]``."""
+    """``python -m peel_bringup.live_node --host H --port P [--params FILE]``."""
     assert run.live is not None
     host, port = run.live
-    cmd = [sys.executable, "-m", "peel_bringup.live", "--host", host, "--port", str(port)]
+    cmd = [sys.executable, "-m", "peel_bringup.live_node", "--host", host, "--port", str(port)]
     return cmd + (["--params", str(Path(run.override).resolve())] if run.override else [])
 
 

@@ -1,6 +1,7 @@
-"""The channels of the live view (``peel graph --live``, :mod:`.live`) as plain data: their JSON
-schemas and the conversion of what the graph publishes into their messages. Imports no ROS and
-no Foxglove: messages are read by attribute (duck-typed), so a test builds them from anything.
+"""The channels of the live view (``peel graph --live``, :mod:`.live_node`) as plain data: their
+JSON schemas and the conversion of what the graph publishes into their messages. Imports no ROS
+and no Foxglove: messages are read by attribute (duck-typed), so a test builds them from
+anything.
 
 Two kinds of channel, every one JSON-encoded with a JSON schema (docs/graph.md, "Live view"):
 

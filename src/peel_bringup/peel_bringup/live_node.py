@@ -1,7 +1,7 @@
 """``peel_live``: the running graph on a Foxglove WebSocket server (``peel graph --live [PORT]``,
 docs/graph.md "Live view").
 
-    python -m peel_bringup.live [--port 8765] [--host 127.0.0.1] [--params FILE]
+    python -m peel_bringup.live_node [--port 8765] [--host 127.0.0.1] [--params FILE]
 
 A thin rclpy adapter: it subscribes to the graph's topics (each with the profile its
 publishers offer, :mod:`peel_msgs_py.topics`), turns every message into the JSON message of its
