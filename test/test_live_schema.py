@@ -310,3 +310,13 @@ print("ok")
         with pytest.raises(PeelError, match=f"--live: cannot serve on 127.0.0.1:{port}"):
             graph.resolve(graph._parser().parse_args(
                 ["--tasks", "1", "--out", str(tmp_path / "b"), "--live", str(port)]))
+
+
+def test_demo_passes_live_to_the_graph(tmp_path: Path) -> None:
+    from peel_bringup import demo, graph
+
+    for argv, live in (([], None), (["--live"], ("127.0.0.1", graph.LIVE_PORT)),
+                       (["--live", "9001", "--live-host", "0.0.0.0"], ("0.0.0.0", 9001))):
+        args = demo._parser().parse_args(argv)
+        gargs = graph._parser().parse_args(demo.graph_argv(args, tmp_path, tmp_path / "bag"))
+        assert (None if gargs.live is None else (gargs.live_host, gargs.live)) == live

@@ -152,6 +152,16 @@ def write_report(run_dir: Path, summary: dict[str, Any], png: Path, bag: Path,
     return atomic_write_text(path, "\n".join(lines))
 
 
+def graph_argv(args: Any, run_dir: Path, bag: Path) -> list[str]:
+    """The ``peel graph`` arguments of a demo: its tasks on its plant, recorded to ``bag``."""
+    return (["--plant", args.plant, "--tasks", str(args.tasks), "--record", str(bag),
+             "--out", str(run_dir)]
+            + (["--force"] if args.force else [])
+            + (["--params", args.params] if args.params else [])
+            + (["--seed", str(args.seed)] if args.seed is not None else [])
+            + (["--live", str(args.live), "--live-host", args.live_host] if args.live else []))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``peel demo``; returns the exit status."""
     from . import graph
@@ -163,13 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"peel demo: {args.tasks} tasks on the {args.plant} through the node graph "
           f"(shipped checkpoint, online learning); this takes a few minutes", flush=True)
     t0 = time.monotonic()
-    gargs = graph._parser().parse_args(
-        ["--plant", args.plant, "--tasks", str(args.tasks), "--record", str(bag),
-         "--out", str(run_dir)]
-        + (["--force"] if args.force else [])
-        + (["--params", args.params] if args.params else [])
-        + (["--seed", str(args.seed)] if args.seed is not None else [])
-        + (["--live", str(args.live), "--live-host", args.live_host] if args.live else []))
+    gargs = graph._parser().parse_args(graph_argv(args, run_dir, bag))
     gargs.command = "peel demo"
     status = graph.run_graph(gargs)
     wall = time.monotonic() - t0
