@@ -4,7 +4,8 @@ One short graph run (one task of 6 mm on the simulator, small N/H) with ``--live
 the Foxglove WebSocket protocol written for the test (:mod:`foxglove_client`, the standard
 library alone) connects while it runs, reads ``serverInfo`` and ``advertise``, subscribes to
 the force channel and receives its ``messageData`` frames: force samples 0.1 s of simulated time
-apart (their header stamps), F_RX and F_RZ finite. The server listens on 127.0.0.1 only.
+apart (their header stamps), F_RX and F_RZ finite, the same samples as the run's bag holds on the
+same topic (what lets one layout show both). The server listens on 127.0.0.1 only.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 import pytest
 from foxglove_client import SUBPROTOCOLS, connect, message_data
 from graph_helpers import Lines, assert_clean_logs, node_env
-from test_graph_run import write_override
+from test_graph_run import read_bag, write_override
 
 pytestmark = pytest.mark.process  # starts processes: scripts/flaky.sh
 
@@ -80,7 +81,7 @@ def test_live_view_serves_force_samples_at_10_hz_of_sim_time(tmp_path: Path,
     port = free_port()
     cmd = [sys.executable, "-m", "peel_bringup.cli", "graph", "--plant", "sim", "--tasks", "1",
            "--params", str(write_override(tmp_path, 120.0)), "--out", str(tmp_path / "run"),
-           "--seed", "3", "--live", str(port)]
+           "--seed", "3", "--live", str(port), "--record", str(tmp_path / "bag")]
     proc = subprocess.Popen(cmd, env=node_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
@@ -117,4 +118,8 @@ def test_live_view_serves_force_samples_at_10_hz_of_sim_time(tmp_path: Path,
     assert np.allclose(steps, DT_S, atol=1e-6), steps
     forces = np.array([[m["wrench"]["force"]["x"], m["wrench"]["force"]["z"]] for m in got])
     assert np.all(np.isfinite(forces)) and np.any(forces != 0.0)
+    bag = {(round(t, 6), m.wrench.force.x, m.wrench.force.z)
+           for t, m in read_bag(tmp_path / "bag")["/peel/wrench"]}
+    live = {(round(float(t), 6), f[0], f[1]) for t, f in zip(stamps, forces, strict=True)}
+    assert live <= bag
     assert_clean_logs(tmp_path / "run")
