@@ -310,6 +310,9 @@ print("ok")
         with pytest.raises(PeelError, match=f"--live: cannot serve on 127.0.0.1:{port}"):
             graph.resolve(graph._parser().parse_args(
                 ["--tasks", "1", "--out", str(tmp_path / "b"), "--live", str(port)]))
+    with pytest.raises(PeelError, match="--live-host needs --live"):
+        graph.resolve(graph._parser().parse_args(
+            ["--tasks", "1", "--out", str(tmp_path / "h"), "--live-host", "0.0.0.0"]))
 
 
 def test_demo_passes_live_to_the_graph(tmp_path: Path) -> None:

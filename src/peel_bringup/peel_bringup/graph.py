@@ -16,8 +16,8 @@ effect to the simulated plant (the simulator node's ``node.effects``; docs/resid
 names are imported before anything starts. ``--live [PORT]`` adds the live view
 (``peel_live``, :mod:`.live_node`): the running graph on a Foxglove WebSocket server at
 ``ws://127.0.0.1:PORT`` (default 8765; ``--live-host`` binds another address), its port checked
-free before anything starts; without ``--live`` nothing imports the Foxglove SDK. Every node's parameters
-are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
+free before anything starts; without ``--live`` nothing imports the Foxglove SDK. Every node's
+parameters are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
 refuses its parameters or files anyway (a model with non-finite outputs, too) exits 2, and so
 does the graph. The launcher itself joins the graph as a listener (``peel_graph``:
 ``/peel/trajectory``, ``/peel/model_version``, ``/peel/model_info``, ``/peel/model_update``) and
@@ -322,6 +322,9 @@ def check_port_free(host: str, port: int) -> None:
     import socket
 
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+        # as the server binds: a port whose last connections linger in TIME_WAIT is free,
+        # one a socket listens on is not
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host, port))
         except OSError as exc:
@@ -403,6 +406,8 @@ def resolve(args: argparse.Namespace) -> Run:
     if args.live is not None:
         live = (args.live_host, args.live)
         check_port_free(*live)
+    elif args.live_host != LIVE_HOST:
+        raise PeelError("--live-host needs --live")
     run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects, out, live)
     check_node_params(override, run.settings())
     return run  # nothing is written yet: run_graph creates the folder once the domain is free
