@@ -150,7 +150,48 @@ def test_planner_status_becomes_typed_margins_and_latency() -> None:
     idle_state = S.planner_state(diagnostics(idle)["status"][0])
     assert idle_state is not None and idle_state["task_margin_n"] is None
     assert idle_state["plan_latency_median_ms"] is None
+    assert set(idle_state["plan_costs"].values()) == {None}  # no plan yet
     assert S.link_state(raw) is None
+
+
+def test_plan_costs_are_the_omega_weighted_terms_of_the_last_plan() -> None:
+    """One plan of the real planner (its default critics): each term's cost is omega (Eq. 38)
+    times that critic's costs of the samples, and together with the control term they are
+    omega times the samples' whole cost; the live channel carries them as numbers."""
+    import torch
+
+    from peel_planner_node.config import PlannerConfig
+    from peel_planner_node.cost import Cost
+    from peel_planner_node.health import plan_costs, planner_status
+    from peel_planner_node.mppi import Planner
+
+    class Linear:
+        def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+            q = float(history.q[-1]) + 0.1 * torch.cumsum(v, dim=1)
+            return torch.stack([q, 1.5 * v + 8.0, torch.full_like(v, 3.0)], dim=-1)
+
+    cfg = PlannerConfig.from_params(load_node_params("peel_planner_node")).replace(
+        **{"mppi.n_samples": 9, "mppi.horizon": 3, "mppi.dtype": "float64"})
+    planner = Planner(Linear(), Cost(cfg.cost), cfg)
+    assert plan_costs(planner.last) == {}
+    hist = Trajectory(t=np.arange(6) * 0.1, q=np.arange(6) * 0.2, v=np.full(6, 2.0),
+                      u=np.full(6, 2.0), fx=np.full(6, 11.0), fz=np.full(6, 3.0),
+                      psi=np.full(6, np.nan))
+    planner.update(hist)
+    last = planner.last
+    costs = plan_costs(last)
+    assert set(costs) == set(S.PLAN_TERMS)
+    omega = last["omega"]
+    for name, v in last["terms"].items():
+        assert costs[name] == pytest.approx(float(omega @ v))
+    assert sum(costs.values()) == pytest.approx(float(omega @ (last["cost"] + last["control"])))
+    model = ModelRecord(version=0, sha256="ab" * 32, path="/m/init.safetensors")
+    status = planner_status(DurationWindow(budget_s=0.5), cfg, model, None, 0, None, 0.0, costs)
+    state = S.planner_state(diagnostics(status)["status"][0])
+    assert state is not None
+    conforms(state, S.CHANNELS[S.LIVE_PLANNER])
+    for name in S.PLAN_TERMS:  # the key values' 6 significant digits
+        assert state["plan_costs"][name] == pytest.approx(costs[name], rel=1e-5, abs=1e-9)
 
 
 def test_bridge_statuses_become_link_states() -> None:

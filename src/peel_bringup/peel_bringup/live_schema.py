@@ -170,10 +170,21 @@ PLANNER_KEYS = {
 }
 #: Fields of :data:`PLANNER_KEYS` that count (integers).
 PLANNER_COUNTS = ("model_version", "plans", "late_commands")
+#: Prefix of the planner's key values holding the last plan's cost per term
+#: (``peel_planner_node.health.PLAN_COST``).
+PLAN_COST = "plan cost "
+#: The planner's default critics (``peel_planner_node.cost.default_critics``) and Eq. 38's
+#: control term: the last plan's omega-weighted cost of each (null before the first plan).
+PLAN_TERMS = ("progress", "force_x", "force_z", "terminal", "barrier", "cost_to_go", "control")
 PLANNER = obj({"level": INTEGER, "level_name": STRING, "message": STRING,
                **{field: INTEGER_OR_NULL if field in PLANNER_COUNTS else NUMBER_OR_NULL
-                  for field in PLANNER_KEYS.values()}},
-              "peel.live.Planner", "the planner's latency and force margins (/diagnostics)")
+                  for field in PLANNER_KEYS.values()},
+               "plan_costs": obj({name: NUMBER_OR_NULL for name in PLAN_TERMS},
+                                 description="the last plan's cost per term: Eq. 4 progress, "
+                                             "force_x, force_z; Eq. 5 terminal; barrier, "
+                                             "cost_to_go (planning only); Eq. 38 control")},
+              "peel.live.Planner",
+              "the planner's latency, force margins and per-term plan costs (/diagnostics)")
 LINK = obj({"cell": STRING, "hardware_id": STRING, "level": INTEGER, "level_name": STRING,
             "message": STRING, "link_state": STRING},
            "peel.live.Link", "a plant bridge's link state (/diagnostics)")
@@ -247,7 +258,8 @@ def planner_state(status: Message) -> Message | None:
     out = {field: number(values.get(key, "-")) for key, field in PLANNER_KEYS.items()}
     for field in PLANNER_COUNTS:
         out[field] = None if out[field] is None else int(out[field])
-    return {**_status_head(status), **out}
+    costs = {name: number(values.get(PLAN_COST + name, "-")) for name in PLAN_TERMS}
+    return {**_status_head(status), **out, "plan_costs": costs}
 
 
 def link_state(status: Message) -> Message | None:
