@@ -6,8 +6,9 @@ docs/graph.md "Live view").
 A thin rclpy adapter: it subscribes to the graph's topics (each with the profile its
 publishers offer, :mod:`peel_msgs_py.topics`), turns every message into the JSON message of its
 channel (:mod:`.live_schema`, ROS-free) and logs it on the Foxglove SDK's channel of that name,
-which the SDK's server sends to every subscribed client (Foxglove WebSocket protocol
-``foxglove.websocket.v1``). The server binds to 127.0.0.1 unless ``--host`` says otherwise.
+which the SDK's server sends to every subscribed client (the Foxglove WebSocket protocol, which
+foxglove-sdk 0.30.3 serves under the subprotocol names ``foxglove.sdk.v1`` and
+``foxglove.sdk.v1.1``). The server binds to 127.0.0.1 unless ``--host`` says otherwise.
 Stamped messages carry their ``header.stamp`` as log time; the others the node's ROS time
 (simulated time under ``use_sim_time``, as every node of the graph), so a plot of the live view
 runs on the graph's clock. A message that does not decode, or holds a non-finite number (JSON
