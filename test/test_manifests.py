@@ -35,7 +35,7 @@ ROSDEP_KEYS = {
 }
 #: Top-level module -> pip distribution, for modules rosdistro has no key for.
 PIP_ONLY = {"mcap": "mcap", "safetensors": "safetensors", "pyarrow": "pyarrow",
-            "pytorch_mppi": "pytorch-mppi"}
+            "pytorch_mppi": "pytorch-mppi", "foxglove": "foxglove-sdk"}
 
 
 def third_party_imports(pkg: str) -> dict[str, Path]:

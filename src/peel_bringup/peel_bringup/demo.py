@@ -1,13 +1,15 @@
 """``peel demo``: the main job. A few tasks through the node graph on the plant, with a bag.
 
     peel demo [--tasks 3] [--out DIR [--force]] [--params FILE] [--seed S] [--plant plant|sim]
+              [--live [PORT] [--live-host HOST]]
 
 Runs ``peel graph --plant plant --tasks 3 --record OUT/bag`` with the shipped checkpoint (the
 planner starts from :func:`peel_model.checkpoint.shipped_checkpoint`; the learner's
 Algorithm 1 updates it after every task), prints one line per task, then reads the bag back
 with ``rosbags`` (:mod:`peel_bag.bagread`) and draws, per task, the blade velocity (measured
 v and command u) and the contact forces F_RX, F_RZ against the task time: ``OUT/demo.png``.
-``OUT/demo.md`` (with ``OUT/summary.json`` beside it) describes the run.
+``OUT/demo.md`` (with ``OUT/summary.json`` beside it) describes the run. ``--live [PORT]``
+serves the running graph on a Foxglove WebSocket meanwhile (``peel graph --live``).
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ def _parser() -> ArgumentParser:
     p.add_argument("--seed", type=nonnegative_int, default=None, help="seed of the task sequence")
     p.add_argument("--plant", choices=("sim", "plant"), default="plant",
                    help="where the tasks run (default: the plant)")
+    from .graph import add_live_args
+
+    add_live_args(p)
     return p
 
 
@@ -147,6 +152,16 @@ def write_report(run_dir: Path, summary: dict[str, Any], png: Path, bag: Path,
     return atomic_write_text(path, "\n".join(lines))
 
 
+def graph_argv(args: Any, run_dir: Path, bag: Path) -> list[str]:
+    """The ``peel graph`` arguments of a demo: its tasks on its plant, recorded to ``bag``."""
+    return (["--plant", args.plant, "--tasks", str(args.tasks), "--record", str(bag),
+             "--out", str(run_dir)]
+            + (["--force"] if args.force else [])
+            + (["--params", args.params] if args.params else [])
+            + (["--seed", str(args.seed)] if args.seed is not None else [])
+            + (["--live", str(args.live), "--live-host", args.live_host] if args.live else []))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``peel demo``; returns the exit status."""
     from . import graph
@@ -158,12 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"peel demo: {args.tasks} tasks on the {args.plant} through the node graph "
           f"(shipped checkpoint, online learning); this takes a few minutes", flush=True)
     t0 = time.monotonic()
-    gargs = graph._parser().parse_args(
-        ["--plant", args.plant, "--tasks", str(args.tasks), "--record", str(bag),
-         "--out", str(run_dir)]
-        + (["--force"] if args.force else [])
-        + (["--params", args.params] if args.params else [])
-        + (["--seed", str(args.seed)] if args.seed is not None else []))
+    gargs = graph._parser().parse_args(graph_argv(args, run_dir, bag))
     gargs.command = "peel demo"
     status = graph.run_graph(gargs)
     wall = time.monotonic() - t0

@@ -2,7 +2,8 @@
 
     peel graph [--plant sim|plant|nachi] [--tasks K] [--record BAG] [--params FILE] [--seed S]
                [--effect MODULE:FUNCTION ...] [--nachi-host HOST] [--nachi-port PORT]
-               [--out DIR [--force]] [--keep-going] [--verbose]
+               [--live [PORT] [--live-host HOST]] [--out DIR [--force]] [--keep-going]
+               [--verbose]
 
 Starts ``peel_sim_node``, ``peel_planner_node`` and ``model_learner_node`` (and the recorder,
 ``peel record``, with ``--record``) as child processes on rclpy (``ROS_DOMAIN_ID`` is passed on;
@@ -12,8 +13,11 @@ would get them. ``--plant nachi`` starts the bridge to the Nachi robot controlle
 (``peel_nachi_bridge``, docs/nachi.md) at ``--nachi-host:--nachi-port`` in the simulator
 bridge's place; it publishes the same topics, so nothing else changes. ``--effect`` adds a user
 effect to the simulated plant (the simulator node's ``node.effects``; docs/residual.md); the
-names are imported before anything starts. Every node's parameters
-are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
+names are imported before anything starts. ``--live [PORT]`` adds the live view
+(``peel_live``, :mod:`.live_node`): the running graph on a Foxglove WebSocket server at
+``ws://127.0.0.1:PORT`` (default 8765; ``--live-host`` binds another address), its port checked
+free before anything starts; without ``--live`` nothing imports the Foxglove SDK. Every node's
+parameters are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
 refuses its parameters or files anyway (a model with non-finite outputs, too) exits 2, and so
 does the graph. The launcher itself joins the graph as a listener (``peel_graph``:
 ``/peel/trajectory``, ``/peel/model_version``, ``/peel/model_info``, ``/peel/model_update``) and
@@ -58,7 +62,7 @@ from typing import Any
 from peel_bag.bag import repair_hint
 from peel_msgs_py import discovery, held_signals
 from peel_msgs_py.atomic import atomic_write_text
-from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
+from peel_msgs_py.cliargs import ArgumentParser, int_arg, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import DomainTaken, PeelError
 from peel_msgs_py.outputs import OutputDir, check_location, check_new_path
 from peel_msgs_py.params import config_dir, default_param_file, load_node_params, validate
@@ -70,8 +74,13 @@ NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
 #: The node that stands in for ``peel_sim_node`` with ``--plant nachi`` (docs/nachi.md).
 NACHI = "peel_nachi_bridge"
 RECORDER = "recorder"
+#: The live view's process (``--live``, :mod:`.live_node`), its default port (Foxglove's) and the
+#: only address it binds by default.
+LIVE = "peel_live"
+LIVE_PORT = 8765
+LIVE_HOST = "127.0.0.1"
 #: Nodes whose death the graph survives with --keep-going.
-OPTIONAL = ("model_learner_node", RECORDER)
+OPTIONAL = ("model_learner_node", RECORDER, LIVE)
 #: Exit status of a node (and of the graph) refusing bad input, e.g. a parameter.
 BAD_INPUT = 2
 #: Exit status of a graph whose nodes all ran but where an update of the learner failed.
@@ -146,12 +155,14 @@ def node_command(name: str, override: str | None, sets: dict[str, Any]) -> list[
 
 def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: bool,
                   link: dict[str, Any] | None = None, effects: Sequence[str] = (),
-                  ) -> dict[str, dict[str, Any]]:
+                  live: bool = False) -> dict[str, dict[str, Any]]:
     """The nodes to start and the ``-p`` settings the launcher gives each: the simulator bridge
     (``plant`` sim or plant; ``effects``: its ``node.effects``) or the Nachi bridge (``plant``
-    nachi; ``link``: its ``link.host``, ``link.port``), the planner and the learner."""
-    readers = {"node.min_subscribers": 2 if recording else 1,  # planner (+ recorder)
-               "node.min_traj_subscribers": 3 if recording else 2}  # learner, launcher (+ rec.)
+    nachi; ``link``: its ``link.host``, ``link.port``), the planner and the learner. The
+    recorder and the live view (``live``) are readers the bridge and the planner wait for."""
+    tools = int(recording) + int(live)
+    readers = {"node.min_subscribers": 1 + tools,  # planner (+ recorder, live view)
+               "node.min_traj_subscribers": 2 + tools}  # learner, launcher (+ ...)
     if plant == "nachi":  # the substrates and the plant are the controller's
         bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers,
                           "node.learner_node": LEARNER, **(link or {})}}
@@ -164,7 +175,7 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
     return {
         **bridge,
         "peel_planner_node": {"use_sim_time": True, "node.seed": seed,
-                              "node.min_cmd_subscribers": 2 if recording else 1},  # bridge (+ rec.)
+                              "node.min_cmd_subscribers": 1 + tools},  # bridge (+ rec., live)
         "model_learner_node": {
             "use_sim_time": True, "node.out_dir": str((run_dir / "models").resolve()),
         },
@@ -285,6 +296,7 @@ def _parser() -> ArgumentParser:
     p.add_argument("--effect", action="append", default=[], metavar="MODULE:FUNCTION",
                    help="add a user effect to the simulated plant (peel_sim_node.effects "
                         "interface, docs/residual.md); repeatable")
+    add_live_args(p)
     p.add_argument("--out", metavar="DIR", default=None,
                    help="run directory for models, logs, summary.json "
                         "(default: graph.out_dir/<time>)")
@@ -294,6 +306,30 @@ def _parser() -> ArgumentParser:
                    help="survive the death of the learner or the recorder (exit status still 1)")
     p.add_argument("--verbose", action="store_true", help="node output on the terminal")
     return p
+
+
+def add_live_args(p: ArgumentParser) -> None:
+    """``--live [PORT]`` and ``--live-host HOST`` (``peel graph``, ``peel demo``)."""
+    p.add_argument("--live", type=int_arg(1, 65535), nargs="?", const=LIVE_PORT, default=None,
+                   metavar="PORT", help="serve the running graph on a Foxglove WebSocket "
+                   f"(ws://127.0.0.1:PORT, default port {LIVE_PORT}; docs/graph.md)")
+    p.add_argument("--live-host", default=LIVE_HOST, metavar="HOST",
+                   help=f"address the live view binds (default {LIVE_HOST}: this machine only)")
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse a live view whose address cannot be bound (in use, not this machine's)."""
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+        # as the server binds: a port whose last connections linger in TIME_WAIT is free,
+        # one a socket listens on is not
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as exc:
+            raise PeelError(f"--live: cannot serve on {host}:{port}: {exc.strerror or exc}; "
+                            f"choose another port: --live PORT") from None
 
 
 def _task_cost(traj: Any, override: str | None) -> float:
@@ -329,11 +365,14 @@ class Run:
     effects: tuple[str, ...] = ()
     #: the run folder, checked; created by :meth:`OutputDir.create` once the graph may start
     out: OutputDir | None = None
+    #: the live view's (host, port), None without ``--live``
+    live: tuple[str, int] | None = None
 
     def settings(self) -> dict[str, dict[str, Any]]:
         """The nodes to start and their ``-p`` settings (:func:`node_settings`)."""
         return node_settings(self.plant, self.tasks, self.seed, self.run_dir,
-                             self.bag is not None, self.link, self.effects)
+                             self.bag is not None, self.link, self.effects,
+                             self.live is not None)
 
 
 def resolve(args: argparse.Namespace) -> Run:
@@ -363,7 +402,13 @@ def resolve(args: argparse.Namespace) -> Run:
     if link and plant != "nachi":
         raise PeelError("--nachi-host / --nachi-port need --plant nachi")
     effects = check_effects(args.effect, plant)
-    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects, out)
+    live = None
+    if args.live is not None:
+        live = (args.live_host, args.live)
+        check_port_free(*live)
+    elif args.live_host != LIVE_HOST:
+        raise PeelError("--live-host needs --live")
+    run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects, out, live)
     check_node_params(override, run.settings())
     return run  # nothing is written yet: run_graph creates the folder once the domain is free
 
@@ -383,15 +428,25 @@ def check_effects(specs: Sequence[str], plant: str) -> tuple[str, ...]:
     return tuple(specs)
 
 
+def live_command(run: Run) -> list[str]:
+    """``python -m peel_bringup.live_node --host H --port P [--params FILE]``."""
+    assert run.live is not None
+    host, port = run.live
+    cmd = [sys.executable, "-m", "peel_bringup.live_node", "--host", host, "--port", str(port)]
+    return cmd + (["--params", str(Path(run.override).resolve())] if run.override else [])
+
+
 def children_of(run: Run) -> list[Child]:
-    """The recorder (first, so it hears everything) and the three nodes (the bridge last, so
-    its readers are there when it starts)."""
+    """The recorder (first, so it hears everything), the live view and the three nodes (the
+    bridge last, so its readers are there when it starts)."""
     logs = run.run_dir / "logs"
     sets = run.settings()
     children: list[Child] = []
     if run.bag is not None:
         children.append(Child(RECORDER, [sys.executable, "-m", "peel_bag.recorder_cli",
                                          "--out", str(run.bag)], logs / "recorder.log"))
+    if run.live is not None:
+        children.append(Child(LIVE, live_command(run), logs / f"{LIVE}.log"))
     bridge = NACHI if run.plant == "nachi" else "peel_sim_node"
     for name in ("model_learner_node", "peel_planner_node", bridge):
         children.append(Child(name, node_command(name, run.override, sets[name]),
@@ -593,6 +648,9 @@ def run_graph(args: argparse.Namespace) -> int:
         for child in children:
             child.start(env, args.verbose)
             print(f"peel graph: started {child.name} (pid {child.pid})", flush=True)
+        if run.live is not None:
+            print(f"peel graph: live view on ws://{run.live[0]}:{run.live[1]} (Foxglove: Open "
+                  f"connection; layout config/foxglove/peel_layout.json)", flush=True)
         watch(w, mon, stop, args.keep_going)
     finally:
         stop.restore()

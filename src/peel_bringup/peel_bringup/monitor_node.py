@@ -22,10 +22,10 @@ from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.wire import DropLog, trajectory_nonfinite
 
 NODE_NAME = "peel_graph"
-#: The names of peel's nodes (launcher, bridges, planner, learner, recorder): one of them on the
+#: The names of peel's nodes (launcher, bridges, planner, learner, recorder, live view): one on the
 #: domain, besides this launcher, is another peel graph.
 PEEL_NODES = (NODE_NAME, "peel_sim_node", "peel_nachi_bridge", "peel_planner_node",
-              "model_learner_node", "peel_recorder")
+              "model_learner_node", "peel_recorder", "peel_live")
 
 
 class GraphMonitor(Node):

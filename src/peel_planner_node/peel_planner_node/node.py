@@ -45,7 +45,7 @@ from peel_msgs_py.wire import DropLog
 from .config import PlannerConfig
 from .control_loop import Answer, ControlLoop, StateAssembler
 from .dynamics import learned_dynamics
-from .health import peak_force, planner_status
+from .health import peak_force, plan_costs, planner_status
 from .model_check import resolve_model_path, validate_model
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
 
@@ -127,7 +127,8 @@ class PlannerNode(NamedRefusals, Node):
     def diagnostics(self) -> list[Status]:
         """The planner's health (:func:`~peel_planner_node.health.planner_status`), 1 Hz."""
         return [planner_status(self.loop.latency, self.cfg, self.ledger.latest, self.refusal,
-                               self.refusals, peak_force(self.loop.rows), self.loop.margin_n)]
+                               self.refusals, peak_force(self.loop.rows), self.loop.margin_n,
+                               plan_costs(self.loop.planner.last))]
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, topic: str, **parts: float) -> None:
