@@ -24,13 +24,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from std_msgs.msg import Int64
 
+from peel_bag.recorder_node import message_class
 from peel_bringup import live_schema as S
 from peel_msgs_py import topics
 from peel_msgs_py.diagnostics import DurationWindow, Status
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import ModelRecord, UpdateReport
 from peel_msgs_py.params import load_node_params
-from peel_msgs_py.recorder_node import message_class
 from peel_msgs_py.ros.diagnostics import status_msg
 from peel_msgs_py.trajectory import Trajectory
 
