@@ -19,9 +19,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from peel_msgs_py.task import task_seed
 from peel_sim_node.config import SimConfig, load_sim_config
 from peel_sim_node.env import PeelEnv
-from peel_sim_node.lockstep import task_params, task_seed
+from peel_sim_node.lockstep import task_params
 
 from . import protocol as p
 
