@@ -48,7 +48,7 @@ if ! { [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ] && [ -x .venv/bin/peel
          "source /opt/ros/jazzy/setup.bash or unset ROS_DISTRO to use the pip wheels" >&2
     exit 2
   fi
-  for pkg in peel_msgs_py peel_sim_node peel_nachi_bridge model_learner_node peel_planner_node peel_bringup; do
+  for pkg in peel_msgs_py peel_bridge peel_sim_node peel_nachi_bridge model_learner_node peel_planner_node peel_bringup; do
     .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "src/$pkg"
   done
   echo "$hash" > "$stamp"

@@ -11,13 +11,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ["peel_msgs_py", "peel_sim_node", "peel_nachi_bridge", "model_learner_node", "peel_planner_node",
-            "peel_bringup"]
+PACKAGES = ["peel_msgs_py", "peel_bridge", "peel_sim_node", "peel_nachi_bridge", "model_learner_node",
+            "peel_planner_node", "peel_bringup"]
 #: Allowed imports between our packages (the dependency direction of docs/CONTRACT.md).
 ALLOWED = {
     "peel_msgs_py": set(),
-    "peel_sim_node": {"peel_msgs_py"},
-    "peel_nachi_bridge": {"peel_msgs_py", "peel_sim_node"},  # the emulator's plant
+    "peel_bridge": {"peel_msgs_py"},
+    "peel_sim_node": {"peel_msgs_py", "peel_bridge"},
+    "peel_nachi_bridge": {"peel_msgs_py", "peel_bridge", "peel_sim_node"},  # the emulator's plant
     "model_learner_node": {"peel_msgs_py", "peel_sim_node"},  # dataset reader (peel train)
     "peel_planner_node": {"peel_msgs_py", "model_learner_node"},
     "peel_bringup": set(PACKAGES) - {"peel_bringup"},

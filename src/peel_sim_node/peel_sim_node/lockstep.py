@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from peel_bridge.loop import task_stamp_ns, to_ns
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.task import Sample, task_seed
 from peel_msgs_py.trajectory import Trajectory
@@ -34,11 +35,6 @@ from .env import PeelEnv, sample_params
 def task_params(cfg: Any, seed: int, k: int, source: str) -> dict[str, float]:
     """Physical parameters of task ``k`` (3.2.1 intervals), as ``peel_bringup.experiment``."""
     return dict(sample_params(cfg, np.random.default_rng([seed, 0, k]), source))
-
-
-def to_ns(t_s: float) -> int:
-    """Seconds of ROS time -> integer nanoseconds (exact comparisons of stamps)."""
-    return round(t_s * 1e9)
 
 
 class TaskSequence:
@@ -60,7 +56,7 @@ class TaskSequence:
     def sample(self, k: int) -> Sample:
         """Sample ``k`` of the current task."""
         h = self.env.history
-        return Sample(self.index * self.slot_ns + to_ns(float(h.t[k])), self.index,
+        return Sample(task_stamp_ns(self.index, self.slot_ns, float(h.t[k])), self.index,
                       float(h.q[k]), float(h.v[k]), float(h.fx[k]), float(h.fz[k]))
 
     def last(self) -> Sample:
