@@ -32,7 +32,7 @@ else
   venv_opts=()
 fi
 # The peel packages, each after the ones it depends on (test/test_workspace.py holds the order).
-PACKAGES=(peel_msgs_py peel_model peel_bag peel_sim_node peel_nachi_bridge peel_nachi_emulator
+PACKAGES=(peel_msgs_py peel_model peel_bag peel_bridge peel_sim_node peel_nachi_bridge peel_nachi_emulator
           model_learner_node peel_planner_node peel_residual peel_experiments peel_bringup)
 # pip install -q, without the known noise: setuptools' "Editable installation" notice (one
 # 10-line block per package, a UserWarning of the build backend, ignored by message) and pip's

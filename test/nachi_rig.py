@@ -24,10 +24,11 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import Float64MultiArray, Int64
+from std_msgs.msg import Float64MultiArray, Int64, String
 
 from peel_bag.bag import BagWriter
 from peel_msgs_py import codec, topics
+from peel_msgs_py.modelinfo import ModelRecord
 from peel_msgs_py.units import mmps_to_mps
 
 SLOT_S = 100.0
@@ -51,7 +52,7 @@ def bridge_cmd(port: int, **params: object) -> list[str]:
 
 
 class Rig:
-    """Recorder + commander (+ a latched model version) in the test process."""
+    """Recorder + commander (+ a latched model version and record) in the test process."""
 
     def __init__(self, domain: str | int, bag: Path,
                  speed: Callable[[int, float], float | None] | None = None,
@@ -70,15 +71,24 @@ class Rig:
                                           qos(name, subscriber=True))
         self.pub_cmd = self.node.create_publisher(TwistStamped, topics.CMD_VEL,
                                                   qos(topics.CMD_VEL))
+        self.pub_version = self.node.create_publisher(Int64, topics.MODEL_VERSION,
+                                                      qos(topics.MODEL_VERSION))
+        self.pub_info = self.node.create_publisher(String, topics.MODEL_INFO,
+                                                   qos(topics.MODEL_INFO))
         if model_version is not None:
-            pub = self.node.create_publisher(Int64, topics.MODEL_VERSION,
-                                             qos(topics.MODEL_VERSION))
-            pub.publish(Int64(data=model_version))
+            self.announce(model_version)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+
+    def announce(self, version: int, producer: str | None = None, task: int | None = None) -> None:
+        """Announce a model as the planner does: ``/peel/model_version`` and its record on
+        ``/peel/model_info`` (``producer``'s update after ``task``, or None)."""
+        rec = ModelRecord(version, f"{version:064x}", f"rig_v{version}.safetensors", producer, task)
+        self.pub_version.publish(Int64(data=version))
+        self.pub_info.publish(String(data=rec.to_json()))
 
     def _spin(self) -> None:
         while not self._stop.is_set():

@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ["peel_msgs_py", "peel_model", "peel_bag", "peel_sim_node", "peel_nachi_bridge", "peel_nachi_emulator",
-            "model_learner_node", "peel_planner_node", "peel_residual", "peel_experiments",
-            "peel_bringup"]
+PACKAGES = ["peel_msgs_py", "peel_model", "peel_bag", "peel_bridge", "peel_sim_node",
+            "peel_nachi_bridge", "peel_nachi_emulator", "model_learner_node", "peel_planner_node",
+            "peel_residual", "peel_experiments", "peel_bringup"]
 #: Top-level module -> rosdep key. ROS modules are ROS packages (the key is the package name, each
 #: released in rosdistro's jazzy/distribution.yaml); the python3-* keys are those of rosdistro's
 #: rosdep/python.yaml, each with an ubuntu entry (both checked in ros/rosdistro at 8468e88).

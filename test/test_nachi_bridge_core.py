@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from peel_msgs_py.task import task_seed
 from peel_nachi_bridge import protocol as p
 from peel_nachi_bridge.bridge import NachiBridge
 from peel_nachi_bridge.config import load_config
@@ -25,7 +26,7 @@ from peel_nachi_emulator.faults import parse_fault
 from peel_nachi_emulator.robot import Robot
 from peel_sim_node.config import load_sim_config
 from peel_sim_node.env import PeelEnv
-from peel_sim_node.lockstep import task_params, task_seed
+from peel_sim_node.lockstep import task_params
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 

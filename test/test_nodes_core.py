@@ -9,11 +9,12 @@ import pytest
 
 from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.task import task_seed
 from peel_planner_node.config import load_planner_config
 from peel_planner_node.control_loop import ControlLoop, StateAssembler
 from peel_planner_node.dynamics import ReferenceDynamics
 from peel_sim_node.config import load_sim_config
-from peel_sim_node.lockstep import TaskSequence, task_seed
+from peel_sim_node.lockstep import TaskSequence
 
 SHORT = {"task.q_ter_mm": 4.0, "task.t_max_s": 6.0}
 

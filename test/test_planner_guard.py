@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
+from peel_msgs_py.task import Sample
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node.config import GUARDED, UNGUARDED, MarginConfig, PlannerConfig
-from peel_planner_node.control_loop import ControlLoop, StateSample
+from peel_planner_node.control_loop import ControlLoop
 from peel_planner_node.cost import BarrierCritic, Cost
 from peel_planner_node.guard import ForceMargin, first_period_forces, largest_safe
 from peel_planner_node.mppi import Planner
@@ -168,13 +169,13 @@ def test_every_sample_unsafe_sends_the_fallback_and_counts_it() -> None:
 def test_control_loop_logs_the_fallback_and_exposes_the_margin() -> None:
     cfg = config()
     loop = ControlLoop(cfg, PlantModel(fx=25.0), seed=0)
-    answers = [loop.on_sample(StateSample(k * 100_000_000, 0, 0.0, 0.0, 4.0, 3.0))
+    answers = [loop.on_sample(Sample(k * 100_000_000, 0, 0.0, 0.0, 4.0, 3.0))
                for k in range(6)]
     planned = [a for a in answers if a is not None]
     assert [a.u_mmps for a in planned] == [0.0, 0.0]
     assert "guard fallback" in planned[1].note and "sent 0.00 mm/s" in planned[1].note
     assert loop.guard["fallbacks"] == 2 and loop.margin_n == pytest.approx(1.0)
-    stop = loop.on_sample(StateSample(600_000_000, 0, 0.0, 0.0, 21.0, 3.0))
+    stop = loop.on_sample(Sample(600_000_000, 0, 0.0, 0.0, 21.0, 3.0))
     assert stop is not None and "guard: 0 of 2 commands reduced" in stop.note
     assert "2 fallbacks" in stop.note
 

@@ -376,6 +376,35 @@ def test_planner_does_not_configure_its_dynamics() -> None:
     assert planner.plan(start_history()) > 0.0
 
 
+
+@pytest.mark.parametrize("flat", [{}, {"mppi.noise_correlation": 0.6},
+                                  {"mppi.dtype": "float64", "mppi.control_cost_scale": 0.3}])
+def test_update_weights_equal_the_former_inline_eq38(flat, monkeypatch) -> None:
+    """Planner.update weights through eq38_weights; on random costs (a dynamics with random
+    forces) omega equals, bit for bit, the softmax the update used to compute in place."""
+    import peel_planner_node.mppi as mppi
+
+    calls = []
+    real = mppi.eq38_weights
+
+    def spy(*args, **kw):
+        calls.append(args)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(mppi, "eq38_weights", spy)
+    cfg = config(**flat)
+    rng = np.random.default_rng(5)
+    planner = Planner(LinearDynamics(a=float(rng.uniform(0.5, 3.0)),
+                                     b=float(rng.uniform(0.5, 5.0))), Cost(cfg.cost), cfg)
+    hist = start_history()
+    for v in rng.uniform(0.2, 3.0, 3):
+        planner.update(hist := append(hist, float(v)))
+        last = planner.last
+        s = last["cost"] + last["control"]
+        old = torch.softmax(-(s - s.min()) / planner.lam, dim=0)
+        assert torch.equal(last["omega"], old)
+    assert len(calls) == 3
+
 def test_terms_of_the_plan_are_kept_for_diagnostics() -> None:
     """Every critic's N costs (summing to J) and Eq. 38's control term are in planner.last;
     term_influence is each term's mean minus its omega-weighted mean."""

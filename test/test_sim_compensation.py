@@ -41,3 +41,47 @@ def test_geometry_and_bad_length():
     assert phi == pytest.approx(math.atan(0.02))
     with pytest.raises(ValueError, match="L_p"):
         comp.f_bend(70000.0, 2.0, 0.5, 0.02, 0.0)
+
+
+def hoisted_compensation(e: float, b: float, h: float, alpha_deg: float, phi: float, lp: float,
+                         v: float, phi_deg: bool) -> tuple[float, float]:
+    """The env's former inline copy of Eq. 19-22 (sin/cos of alpha hoisted out of the step)."""
+    alpha = math.radians(alpha_deg)
+    sin_a, cos_a = math.sin(alpha), math.cos(alpha)
+    fb = comp.f_bend(e, b, h, phi, lp)
+    fp = float(comp.f_peel(v, math.degrees(phi) if phi_deg else phi))
+    return fb * sin_a, fb * cos_a + fp
+
+
+@pytest.mark.parametrize("phi_deg", [True, False])
+def test_compensate_equals_the_formerly_inlined_copy_bit_for_bit(phi_deg):
+    """The simulator calls compensate(); its numbers are those of the copy it replaced."""
+    import numpy as np
+
+    rng = np.random.default_rng(17)
+    for _ in range(200):
+        e, b, h = rng.uniform(1e3, 1e5), rng.uniform(0.5, 5.0), rng.uniform(0.1, 1.5)
+        alpha, phi = rng.uniform(0.0, 90.0), rng.uniform(0.0, 0.3)
+        lp, v = rng.uniform(1.0, 80.0), rng.uniform(0.0, 20.0)
+        got = comp.compensate(e_n_per_mm2=e, b_mm=b, h_mm=h, alpha_deg=alpha, phi_rad=phi,
+                              lp_mm=lp, v_mmps=v, phi_unit_deg=phi_deg)
+        assert got == hoisted_compensation(e, b, h, alpha, phi, lp, v, phi_deg)
+
+
+def test_env_runs_compensate(monkeypatch):
+    """PeelEnv's measured forces go through compensation.compensate (no copy of Eq. 21-22)."""
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.env import PeelEnv
+
+    calls = []
+    real = comp.compensate
+
+    def spy(**kw):
+        calls.append(kw)
+        return real(**kw)
+
+    monkeypatch.setattr(comp, "compensate", spy)
+    with PeelEnv(load_sim_config(), source="sim", seed=1) as env:
+        env.reset(seed=1)
+        env.step(5.0)
+    assert calls and {"alpha_deg", "phi_rad", "lp_mm", "v_mmps"} <= set(calls[0])

@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (never one of its own layer or a higher one).
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("peel_msgs_py",),  # interfaces: topics, QoS, codec, units, params, rclpy helpers
-    ("peel_model", "peel_bag", "peel_sim_node", "peel_nachi_bridge"),
+    ("peel_model", "peel_bag", "peel_bridge"),
+    ("peel_sim_node", "peel_nachi_bridge"),  # the plant bridges, on peel_bridge's core
     ("peel_nachi_emulator", "model_learner_node", "peel_planner_node", "peel_residual"),
     ("peel_experiments",),
     ("peel_bringup",),  # the graph, the demo, the launch file, the `peel` command
@@ -33,8 +34,9 @@ ALLOWED = {
     "peel_msgs_py": set(),
     "peel_model": {"peel_msgs_py"},
     "peel_bag": {"peel_msgs_py"},
-    "peel_sim_node": {"peel_msgs_py"},
-    "peel_nachi_bridge": {"peel_msgs_py"},  # runs next to a real controller: no simulator
+    "peel_bridge": {"peel_msgs_py"},
+    "peel_sim_node": {"peel_msgs_py", "peel_bridge"},
+    "peel_nachi_bridge": {"peel_msgs_py", "peel_bridge"},  # runs next to a real controller: no simulator
     "peel_nachi_emulator": {"peel_msgs_py", "peel_sim_node", "peel_nachi_bridge"},  # the plant it runs
     "model_learner_node": {"peel_msgs_py", "peel_model", "peel_bag", "peel_sim_node"},  # peel train's readers
     "peel_planner_node": {"peel_msgs_py", "peel_model"},

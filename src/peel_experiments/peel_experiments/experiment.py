@@ -41,6 +41,7 @@ import numpy as np
 
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.params import ParamSpec, load_node_params, validate
+from peel_msgs_py.task import mppi_seed, task_seed
 from peel_msgs_py.trajectory import Trajectory
 
 NODE = "peel_bringup"
@@ -169,11 +170,6 @@ class Setup:
     effects: tuple[str, ...] = ()  # user effects module:function added to the plant
 
 
-def task_seed(seed: int, k: int, stream: int = 0) -> int:
-    """Sensor-noise and planner-noise seed of task k of seed ``seed`` (same for all methods)."""
-    return int(np.random.SeedSequence([seed, stream, k]).generate_state(1)[0])
-
-
 def substrates(sim_cfg: Any, seed: int, n: int, stream: int = 0, level: int | None = None,
                sequence: str = "stationary") -> list[dict[str, float]]:
     """Plant parameters of the n substrates of ``seed`` (one per task): drawn from the 3.2.1
@@ -275,7 +271,7 @@ def run_job(method: str, seed: int, setup: Setup,
     try:
         for k, params in enumerate(subs):
             ts = task_seed(seed, k, setup.substrate_stream)
-            cfg_k = pcfg.replace(**{"mppi.seed": ts % (2**31)})
+            cfg_k = pcfg.replace(**{"mppi.seed": mppi_seed(seed, k, setup.substrate_stream)})
             planner = (oracle_planner(env, cfg_k, cost) if predictor is None
                        else learned_planner(predictor, cfg_k, cost))
             planner.reset()

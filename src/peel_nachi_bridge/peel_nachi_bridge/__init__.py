@@ -3,7 +3,7 @@
 * :mod:`.protocol` -- NACHI-PEEL 1 (docs/nachi_protocol.md): line grammar, strict parsing.
 * :mod:`.link` -- one TCP connection (handshake, line reading) and the reconnect backoff.
 * :mod:`.bridge` -- the ROS-free bridge core: task state machine and the link's safety rules.
-* :mod:`.sequencer` -- which task to run next (readers ready, learner's model between tasks).
 * :mod:`.config` -- the bridge's parameters (config/peel_nachi_bridge.yaml), validated.
-* :mod:`.node` -- the thin rclpy node (the only module here that imports ROS).
+* :mod:`.node` -- the thin rclpy node (the only module here that imports ROS), on
+  :mod:`peel_bridge` (the task loop and the topics both plant bridges share).
 """

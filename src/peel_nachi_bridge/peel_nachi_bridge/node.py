@@ -7,7 +7,10 @@ message: every controller sample as ``/clock`` + ``/peel/wrench``, ``/peel/twist
 ``/peel/cmd_vel`` of the running task to the controller as ``V`` (mm/s on the line:
 :mod:`peel_msgs_py.units` converts). The link, its safety rules and the task state machine are
 the ROS-free :class:`~peel_nachi_bridge.bridge.NachiBridge`; which task runs when is
-:class:`~peel_nachi_bridge.sequencer.TaskSequencer`. This module only wires them to rclpy.
+:class:`~peel_bridge.loop.TaskLoop`, and the publishers, the command subscription and model
+following (``/peel/model_info``, ``/peel/model_update``) are
+:class:`~peel_bridge.plant_node.PlantTopics`, both shared with ``peel_sim_node``. This module
+only wires them to rclpy.
 """
 
 from __future__ import annotations
@@ -16,36 +19,30 @@ import queue
 import sys
 import time
 
-from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import TwistStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray, Int64, String
 
+from peel_bridge.loop import LoopParams, TaskLoop, task_stamp_ns, to_ns
+from peel_bridge.plant_node import PlantTopics
 from peel_msgs_py import codec, topics
 from peel_msgs_py.diagnostics import RecentRises, Status
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
-from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
-from peel_msgs_py.ros.qos import to_profile
-from peel_msgs_py.units import mm_to_m, mmps_to_mps, mps_to_mmps
-from peel_msgs_py.wire import DropLog
+from peel_msgs_py.task import Sample
+from peel_msgs_py.units import mps_to_mmps
 
 from . import protocol as p
 from .bridge import NachiBridge
 from .config import BridgeConfig
 from .health import bridge_status
 from .parameters import NODE_NAME, SPECS
-from .sequencer import Readiness, TaskSequencer
 from .task import TaskResult
 
-#: Wall s between two looks at the task sequence (finished tasks, what to start next).
+#: Wall s between two looks at the task loop (finished tasks, what to start next).
 TICK_S = 0.05
-#: Nanoseconds per second (stamps are integer ns: task slot + controller time).
-NS = 1_000_000_000
 
 
 class NachiBridgeNode(NamedRefusals, Node):
@@ -53,30 +50,13 @@ class NachiBridgeNode(NamedRefusals, Node):
 
     def __init__(self) -> None:
         super().__init__(NODE_NAME)
-        self.cfg = BridgeConfig.from_params(declare(self, SPECS))
-        qos = topics.qos_profile
-        self.pub_clock = self.create_publisher(ClockMsg, topics.CLOCK, qos(topics.CLOCK))
-        self.pub_wrench = self.create_publisher(WrenchStamped, topics.WRENCH, qos(topics.WRENCH))
-        self.pub_twist = self.create_publisher(TwistStamped, topics.TWIST, qos(topics.TWIST))
-        self.pub_pose = self.create_publisher(PoseStamped, topics.POSE, qos(topics.POSE))
-        self.pub_traj = self.create_publisher(Float64MultiArray, topics.TRAJECTORY,
-                                              qos(topics.TRAJECTORY))
-        self.create_subscription(TwistStamped, topics.CMD_VEL, self.on_cmd_vel,
-                                 qos(topics.CMD_VEL, subscriber=True))
-        self.create_subscription(Int64, topics.MODEL_VERSION, self.on_model_version,
-                                 qos(topics.MODEL_VERSION, subscriber=True))
-        self.create_subscription(String, topics.MODEL_INFO, self.on_model_info,
-                                 to_profile(topics.topic(topics.MODEL_INFO).sub_qos))
-        self.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
-                                 to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
-        self.updates = UpdateWait(self.cfg.node.learner_node)
-        self.drops = DropLog()
-        self.model_version: int | None = None
-        self.versions_seen: set[int] = set()
-        self.version_at_start: dict[int, int | None] = {}
+        values = declare(self, SPECS)
+        self.cfg = BridgeConfig.from_params(values)
+        self.slot_ns = to_ns(self.cfg.node.task_slot_s)
+        self.plant = PlantTopics(self, self.cfg.node.learner_node, self.on_cmd_vel)
+        self.loop = TaskLoop(LoopParams.from_params(values), self.on_log)
         self.ended: queue.SimpleQueue[TaskResult] = queue.SimpleQueue()
         self.done, self.exit_status = False, 0
-        self.sequencer = TaskSequencer(self.cfg.node, self.on_log)
         self.bridge = NachiBridge(self.cfg.link, self.cfg.safety, self).start()
         self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.faults = RecentRises()
@@ -90,51 +70,22 @@ class NachiBridgeNode(NamedRefusals, Node):
         try:
             index = codec.task_from_frame_id(msg.header.frame_id)
         except PeelError as exc:
-            self.log_drop(self.drops.drop(topics.CMD_VEL, "header.frame_id", f"is bad: {exc}"))
+            self.plant.log_drop(self.plant.drops.drop(topics.CMD_VEL, "header.frame_id",
+                                                      f"is bad: {exc}"))
             return
         self.bridge.command(float(mps_to_mmps(msg.twist.linear.x)), index)
-
-    def on_model_version(self, msg: Int64) -> None:
-        if msg.data < 0:
-            self.log_drop(self.drops.drop(topics.MODEL_VERSION, "data",
-                                          f"is negative ({msg.data})"))
-            return
-        self.model_version = int(msg.data)
-        self.versions_seen.add(int(msg.data))
-
-    def on_model_info(self, msg: String) -> None:
-        try:
-            self.updates.add_record(ModelRecord.from_json(msg.data))
-        except PeelError as exc:
-            self.log_drop(self.drops.drop(topics.MODEL_INFO, "data",
-                                          f"is not a model record: {exc}"))
-
-    def on_model_update(self, msg: String) -> None:
-        try:
-            self.updates.add_report(UpdateReport.from_json(msg.data))
-        except PeelError as exc:
-            self.log_drop(self.drops.drop(topics.MODEL_UPDATE, "data",
-                                          f"is not an update report: {exc}"))
-
-    def log_drop(self, line: str | None) -> None:
-        if line is not None:
-            self.get_logger().warning(line)
 
     def on_tick(self) -> None:
         while not self.ended.empty():
             self.publish_task(self.ended.get())
-        state_readers = min(pub.get_subscription_count()
-                            for pub in (self.pub_wrench, self.pub_twist, self.pub_pose))
-        seen = Readiness(self.model_version, state_readers, self.pub_traj.get_subscription_count(),
-                         update_known=lambda task: self.updates.outcome(task) is not None)
-        index = self.sequencer.poll(time.monotonic(), seen)
+        index = self.loop.poll(time.monotonic(), self.plant.readiness())
         if index is not None:
-            self.version_at_start[index] = self.model_version
+            self.plant.task_started(index)
             self.bridge.request_task(index)
         if self.bridge.gave_up and self.bridge.busy:
             self.get_logger().error(f"giving up: {self.bridge.gave_up}")
             self.done, self.exit_status = True, 1
-        elif self.sequencer.exit_now:
+        elif self.loop.exit_now:
             self.done = True
 
     def diagnostics(self) -> list[Status]:
@@ -145,18 +96,8 @@ class NachiBridgeNode(NamedRefusals, Node):
 
     # -- bridge listener (called from the bridge thread) ----------------------------------------
     def on_sample(self, index: int, s: p.Sample) -> None:
-        t = stamp(round(index * self.cfg.node.task_slot_s * NS) + round(s.t * NS))
-        frame = codec.task_frame_id(index)
-        wrench, twist, pose = WrenchStamped(), TwistStamped(), PoseStamped()
-        for msg in (wrench, twist, pose):
-            msg.header.stamp, msg.header.frame_id = t, frame
-        wrench.wrench.force.x, wrench.wrench.force.z = s.fx, s.fz
-        twist.twist.linear.x = mmps_to_mps(s.v)
-        pose.pose.position.x = mm_to_m(s.q)
-        self.pub_clock.publish(ClockMsg(clock=t))
-        self.pub_wrench.publish(wrench)
-        self.pub_twist.publish(twist)
-        self.pub_pose.publish(pose)
+        self.plant.publish_sample(Sample(task_stamp_ns(index, self.slot_ns, s.t), index,
+                                         s.q, s.v, s.fx, s.fz))
 
     def on_task_end(self, result: TaskResult) -> None:
         self.ended.put(result)
@@ -179,17 +120,14 @@ class NachiBridgeNode(NamedRefusals, Node):
             assert traj is not None
             traj.meta.update({
                 "task_index": result.index, "t0_ros_s": result.index * self.cfg.node.task_slot_s,
-                "model_version": self.version_at_start.get(result.index),
-                "model_versions": sorted(self.versions_seen),
+                **self.plant.model_meta(result.index),
                 "cmd_limits_mmps": [self.bridge.limits.u_min_mmps, self.bridge.limits.u_max_mmps]})
-            self.pub_traj.publish(trajectory_msg(traj))
-            self.get_logger().info(f"task {result.index + 1}: {result.outcome} ({result.reason}), "
-                                   f"T_cpl={traj.t_cpl:.1f} s, model "
-                                   f"v{traj.meta['model_version']}")
+            self.plant.publish_trajectory(traj, result.index + 1, result.reason)
         elif result.started:
             self.get_logger().warn(f"task {result.index + 1}: {result.reason} before its first "
                                    "sample; nothing to publish")
-        self.sequencer.task_ended(time.monotonic(), result, published)
+        self.loop.task_ended(time.monotonic(), result.index, started=result.started,
+                             published=published)
 
     def destroy_node(self) -> None:
         self.bridge.close()

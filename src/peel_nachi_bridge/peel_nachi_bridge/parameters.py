@@ -12,6 +12,7 @@ run time: the link and the task sequence are fixed when the node starts. The phy
 
 from __future__ import annotations
 
+from peel_bridge.parameters import LOOP_SPECS
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 from peel_msgs_py.wire import speed_limit_specs
 
@@ -49,28 +50,8 @@ SAFETY_SPECS: tuple[ParamSpec, ...] = (
     *speed_limit_specs("safety", "forwarded as V"),
 )
 
-#: ``node:``: the task sequence, as peel_sim_node's (docs/graph.md).
-NODE_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("node.tasks", int, 3, "consecutive tasks to run; 0 = until stopped", min=0),
-    ParamSpec("node.task_slot_s", float, 100.0,
-              "ROS time reserved per task, s (> the controller's t_max)", min=1.0),
-    ParamSpec("node.wait_model_s", float, 120.0,
-              "wall s to wait for the learner's new model between tasks; 0 = do not", min=0.0),
-    ParamSpec("node.wait_planner_s", float, 120.0,
-              "wall s to wait for the planner's /peel/model_version and the readers before "
-              "task 1", min=0.0),
-    ParamSpec("node.min_subscribers", int, 1,
-              "wait for this many subscribers of each state topic before task 1 (planner, "
-              "recorder)", min=0),
-    ParamSpec("node.min_traj_subscribers", int, 1,
-              "wait for this many subscribers of /peel/trajectory before task 1 (learner, "
-              "launcher, recorder)", min=0),
-    ParamSpec("node.learner_node", str, "/model_learner_node",
-              "the learner whose update of the last task is waited for, by its identity "
-              "(/peel/model_info, /peel/model_update; docs/graph.md)"),
-    ParamSpec("node.exit_when_done", bool, False,
-              "exit after the last task (and its model update); for ros2 launch and peel graph"),
-)
+#: ``node:``: the task sequence, as peel_sim_node's (:data:`peel_bridge.parameters.LOOP_SPECS`).
+NODE_SPECS: tuple[ParamSpec, ...] = LOOP_SPECS
 
 #: The groups of the bridge's own parameters.
 GROUPS = ("link", "safety", "node")

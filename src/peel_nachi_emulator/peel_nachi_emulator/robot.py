@@ -6,7 +6,7 @@ message objects; :mod:`.emulator` moves them over TCP at X times real time.
 
 The physics is the simulator bridge's: :class:`peel_sim_node.env.PeelEnv` (``sim`` or ``plant``),
 task ``k`` drawn from ``(seed, k)`` exactly as ``peel_sim_node`` and ``peel experiment`` draw it
-(:func:`peel_sim_node.lockstep.task_params`, :func:`~peel_sim_node.lockstep.task_seed`). The one change:
+(:func:`peel_sim_node.lockstep.task_params`, :func:`peel_msgs_py.task.task_seed`). The one change:
 the env's own stop (``task.f_prewarn_n``) is moved to the controller's force alarm
 (``force_alarm_n``, 25 N by default), because the 20 N prewarning (4.2) is the bridge's to act on.
 The controller ends a task with ``DONE reached`` at q_ter, ``DONE timeout`` at t_max,
@@ -19,10 +19,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from peel_msgs_py.task import task_seed
 from peel_nachi_bridge import protocol as p
 from peel_sim_node.config import SimConfig, load_sim_config
 from peel_sim_node.env import PeelEnv
-from peel_sim_node.lockstep import task_params, task_seed
+from peel_sim_node.lockstep import task_params
 
 
 class Robot:

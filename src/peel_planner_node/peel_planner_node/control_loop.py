@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from peel_msgs_py.diagnostics import DurationWindow
+from peel_msgs_py.task import Sample, mppi_seed
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import PlannerConfig
@@ -35,18 +36,6 @@ from .mppi import Planner
 
 #: Leftover incomplete samples kept at most (a lost part never completes its sample).
 _MAX_PARTIAL = 50
-
-
-@dataclass(frozen=True)
-class StateSample:
-    """One complete state sample in the paper's units."""
-
-    stamp_ns: int
-    task: int
-    q_mm: float
-    v_mmps: float
-    fx_n: float
-    fz_n: float
 
 
 @dataclass(frozen=True)
@@ -67,7 +56,7 @@ class StateAssembler:
     def __init__(self) -> None:
         self.partial: dict[int, dict[str, Any]] = {}
 
-    def add(self, stamp_ns: int, task: int, **parts: float) -> StateSample | None:
+    def add(self, stamp_ns: int, task: int, **parts: float) -> Sample | None:
         """Add ``parts`` (some of q_mm, v_mmps, fx_n, fz_n) of the sample ``stamp_ns``."""
         d = self.partial.setdefault(stamp_ns, {"task": task})
         d.update(parts)
@@ -77,12 +66,7 @@ class StateAssembler:
                     del self.partial[key]
             return None
         del self.partial[stamp_ns]
-        return StateSample(stamp_ns, d["task"], d["q_mm"], d["v_mmps"], d["fx_n"], d["fz_n"])
-
-
-def task_seed(seed: int, k: int) -> int:
-    """``mppi.seed`` of task ``k`` (the derivation of ``peel experiment``)."""
-    return int(np.random.SeedSequence([seed, 0, k]).generate_state(1)[0]) % (2**31)
+        return Sample(stamp_ns, d["task"], d["q_mm"], d["v_mmps"], d["fx_n"], d["fz_n"])
 
 
 class ControlLoop:
@@ -131,7 +115,7 @@ class ControlLoop:
         rows = np.asarray(self.rows, dtype=np.float64)
         return np.stack([rows[:, 1], rows[:, 2], rows[:, 4], rows[:, 5]], axis=1)
 
-    def on_sample(self, s: StateSample) -> Answer | None:
+    def on_sample(self, s: Sample) -> Answer | None:
         """Extend the history with ``s``; plan at a control instant (module docstring)."""
         if self.last_ns is not None and s.stamp_ns <= self.last_ns:
             u = self.answered.get(s.stamp_ns)  # a re-sent sample: repeat the answer
@@ -152,9 +136,9 @@ class ControlLoop:
                       f"({stop.reason} at t={stop.t:.1f} s, between control instants); "
                       f"{guard_line(self.guard)}")
 
-    def new_task(self, s: StateSample) -> str:
+    def new_task(self, s: Sample) -> str:
         """A fresh planner for task ``s.task`` with the current model and configuration."""
-        cfg = self.cfg.replace(**{"mppi.seed": task_seed(self.seed, s.task)})
+        cfg = self.cfg.replace(**{"mppi.seed": mppi_seed(self.seed, s.task)})
         self.planner = Planner(self.planner.dynamics, Cost(cfg.cost), cfg)
         self.planner.reset()
         self.task, self.t0_ns = s.task, s.stamp_ns
@@ -162,7 +146,7 @@ class ControlLoop:
         self.guard = {}
         return f"task {s.task + 1} starts at ROS time {s.stamp_ns / 1e9:.1f} s"
 
-    def plan(self, s: StateSample, note: str | None) -> Answer:
+    def plan(self, s: Sample, note: str | None) -> Answer:
         """One OL-MPPI cycle (Algorithm 2) on the history up to ``s``."""
         history = Trajectory.from_array(np.asarray(self.rows, dtype=np.float64))
         was_stopped = self.planner.stop is not None

@@ -254,10 +254,10 @@ class Planner:
             if not bool(torch.isfinite(j).all()):
                 raise PeelError("rollout cost is not finite: the model predicted NaN/inf forces")
             sigma_ctrl = self.sigma if m.control_cost_sigma == "estimate" else m.sigma0
+            omega = eq38_weights(j, eps, u, sigma_ctrl, self.lam, m.control_cost_scale,
+                                 self._precision)
             ctrl = control_cost(eps, u, sigma_ctrl, self.lam, m.control_cost_scale,
-                                self._precision)
-            s = j + ctrl
-            omega = torch.softmax(-(s - s.min()) / self.lam, dim=0)  # Eq. 38
+                                self._precision)  # kept for the record (term influence)
             self.U = omega @ v  # Eq. 31
             active = Rollouts.predicted(q_now, t_now, out, self.cost.cfg).active
             g = peak_over_limit(out, active, margin, self.config.safety.f_prewarn_n)

@@ -311,8 +311,7 @@ class PeelEnv:
         self._t_end = tk.t_max_s - 1e-9
         self._comp_on = bool(cc.enabled)
         self._e, self._b, self._h = cc.youngs_modulus_n_per_mm2, cc.width_mm, cc.thickness_mm
-        alpha = math.radians(cc.alpha_deg)
-        self._sin_a, self._cos_a = math.sin(alpha), math.cos(alpha)
+        self._alpha_deg = cc.alpha_deg
         self._phi_deg = bool(cc.phi_unit_deg)
         self._lp0 = cc.peeled_length_0_mm
 
@@ -430,11 +429,10 @@ class PeelEnv:
         # the engine's contacts resist; F_RZ: the engine's normal force of the glass on it.
         fx, fz = self.d.f_coupling + resist_n, fz_load
         if self._comp_on:
-            # Eq. 19-22 as compensation.compensate computes them, constants hoisted
             phi, lp = comp.desorption_geometry(scene.substrate_lift() / MM, x_b / MM, self._lp0)
-            fb = comp.f_bend(self._e, self._b, self._h, phi, lp)
-            fp = float(comp.f_peel(max(xd_b / MM, 0.0),
-                                   math.degrees(phi) if self._phi_deg else phi))
-            fx += fb * self._sin_a
-            fz += fb * self._cos_a + fp
+            cx, cz = comp.compensate(e_n_per_mm2=self._e, b_mm=self._b, h_mm=self._h,
+                                     alpha_deg=self._alpha_deg, phi_rad=phi, lp_mm=lp,
+                                     v_mmps=max(xd_b / MM, 0.0), phi_unit_deg=self._phi_deg)
+            fx += cx
+            fz += cz
         return fx, fz, pen / MM

@@ -12,50 +12,29 @@ the time restarts at 0 (``t_k = k * dt``, section 4.2). Per control period (5 sa
 3. :meth:`TaskSequence.finish` closes the task: the trajectory with its provenance ``meta``.
 
 Task ``k``'s physical parameters and noise seed derive from ``(seed, k)`` exactly as in
-``peel experiment`` (:func:`task_seed`, :func:`task_params`), so both peel the same substrates.
+``peel experiment`` (:func:`peel_msgs_py.task.task_seed`, :func:`task_params`), so both peel
+the same substrates.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from peel_bridge.loop import task_stamp_ns, to_ns
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.task import Sample, task_seed
 from peel_msgs_py.trajectory import Trajectory
 
 from .effects import Effect
 from .env import PeelEnv, sample_params
 
 
-def task_seed(seed: int, k: int) -> int:
-    """Sensor-noise and planner-noise seed of task ``k``: the derivation of ``peel experiment``
-    (``peel_experiments.experiment.task_seed``, stream 0)."""
-    return int(np.random.SeedSequence([seed, 0, k]).generate_state(1)[0])
-
-
 def task_params(cfg: Any, seed: int, k: int, source: str) -> dict[str, float]:
     """Physical parameters of task ``k`` (3.2.1 intervals), as ``peel_experiments.experiment``."""
     return dict(sample_params(cfg, np.random.default_rng([seed, 0, k]), source))
-
-
-def to_ns(t_s: float) -> int:
-    """Seconds of ROS time -> integer nanoseconds (exact comparisons of stamps)."""
-    return round(t_s * 1e9)
-
-
-@dataclass(frozen=True)
-class Sample:
-    """One measured state sample in the paper's units, stamped with its ROS time."""
-
-    stamp_ns: int
-    task: int
-    q_mm: float
-    v_mmps: float
-    fx_n: float
-    fz_n: float
 
 
 class TaskSequence:
@@ -77,7 +56,7 @@ class TaskSequence:
     def sample(self, k: int) -> Sample:
         """Sample ``k`` of the current task."""
         h = self.env.history
-        return Sample(self.index * self.slot_ns + to_ns(float(h.t[k])), self.index,
+        return Sample(task_stamp_ns(self.index, self.slot_ns, float(h.t[k])), self.index,
                       float(h.q[k]), float(h.v[k]), float(h.fx[k]), float(h.fz[k]))
 
     def last(self) -> Sample:
