@@ -31,8 +31,8 @@ def test_task_seed_and_sample_are_defined_once() -> None:
 
 
 def test_every_user_calls_the_one_definition() -> None:
-    from peel_bringup import experiment
-    from peel_nachi_bridge import robot
+    from peel_experiments import experiment
+    from peel_nachi_emulator import robot
     from peel_planner_node import control_loop
     from peel_sim_node import lockstep
 
