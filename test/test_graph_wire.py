@@ -59,6 +59,7 @@ class Stranger:
         self.stamps: list[tuple[int, str]] = []  # (stamp ns, frame) of the simulator's samples
         self.planner: int | None = None
         self.armed = self.stopped = False
+        self._last_bad = -math.inf
         self.cmd = self.wrench = self.traj = None
         self._stop = threading.Event()
         self._spin = threading.Thread(target=self._run, daemon=True)
@@ -123,6 +124,14 @@ class Stranger:
         bad.wrench.force.x = float("nan")
         self.wrench.publish(bad)
 
+    def send_bad_wrench_every(self, period_s: float) -> bool:
+        """:meth:`send_bad_wrench` unless one went out less than ``period_s`` ago; True."""
+        now = time.monotonic()
+        if now - self._last_bad >= period_s:
+            self.send_bad_wrench()
+            self._last_bad = now
+        return True
+
     def send_bad_wrench_and_trajectory(self) -> None:
         from peel_msgs_py.ros.messages import trajectory_msg
         from peel_msgs_py.trajectory import Trajectory
@@ -179,10 +188,13 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
               "the simulator to execute the stranger's command")
         stranger.resume_planner()
         # the NaN wrench sent while the planner was stopped can leave its reader's queue
-        # (keep last 10) before it wakes: send one more and wait for the planner's drop line
+        # (keep last 10) before it wakes, and a planner stopped longer than DDS's participant
+        # lease (20 s, a loaded machine) is dropped from discovery until it announces itself
+        # again, so a wrench sent at once may reach no reader: send one a second until the
+        # planner logs its drop
         plan_log = tmp_path / "run" / "logs" / "peel_planner_node.log"
-        stranger.send_bad_wrench()
-        _wait(lambda: "dropped a /peel/wrench message" in plan_log.read_text(), 300,
+        _wait(lambda: stranger.send_bad_wrench_every(1.0) and
+              "dropped a /peel/wrench message" in plan_log.read_text(), 300,
               "the planner to drop the NaN wrench")
         rc = proc.wait(timeout=400)
     finally:

@@ -129,6 +129,6 @@ def test_topics_stamps_trajectory_and_model_following(bridge: tuple[str, list[st
         np.testing.assert_allclose(pose["q_mm"][pose["task"] == k], traj.q, atol=1e-9)
     assert set(w["task"]) == set(range(TASKS))
     clock = arrays[topics.CLOCK]["t_s"]  # best effort, depth 1: may skip, never goes back
-    assert len(clock) > 10 and np.all(np.diff(clock) >= 0)
+    assert len(clock) >= 2 and np.all(np.diff(clock) >= 0)
     assert np.all(np.min(np.abs(clock[:, None] - w["t_s"][None, :]), axis=1) < 1e-6)
     assert float(np.max(pose["q_mm"])) < 10.0
