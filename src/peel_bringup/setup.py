@@ -15,6 +15,7 @@ setup(
         ('share/peel_bringup', ['package.xml']),
         ('share/' + package_name + '/launch', glob('launch/*.py')),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/config/foxglove', glob('config/foxglove/*.json')),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
