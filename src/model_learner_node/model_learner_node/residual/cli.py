@@ -154,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
                       "effects": [{k: e[k] for k in ("key", "channel", "expression",
                                                      "explained_variance")}
                                   for e in rep["effects"]],
-                      "rmse_before": rep["rmse_before"], "rmse_after": rep["rmse_after"]},
+                      "rmse_before": rep["rmse_before"], "rmse_after": rep["rmse_after"],
+                      "verdicts": {ch: v["verdict"] for ch, v in rep["verdicts"].items()}},
                      indent=1))
     return 0
 
