@@ -11,9 +11,9 @@ exploratory command profiles (``peel_sim_node.episode.exploratory_tasks``, as
 measurement side and runs the analysis of ``peel residual`` with the shipped model
 (``model_learner_node.residual.study``, docs/residual.md "Power and false-alarm rate"). The
 fresh tasks (``--fresh`` per task count, their own data seed) are never analysed: the corrected
-model is scored on them with the same effect. Writes ``DIR/study.json`` (every run and the
-summary) and ``DIR/study.md`` (the tables). Seeded: the same arguments give the same results
-with any ``--workers``. Tune on dev seeds (``--seed 0``), report on others.
+model is scored on them with the same effect. Writes ``DIR/runs.jsonl`` (each run as it ends),
+then ``DIR/study.json`` (every run and the summary) and ``DIR/study.md`` (the tables). Seeded:
+the same arguments give the same results with any ``--workers``. Tune on dev seeds (``--seed 0``), report on others.
 """
 
 from __future__ import annotations
@@ -99,23 +99,26 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
 
     jobs = plan_jobs(families, args.amplitudes, args.tasks, args.draws, args.clean, args.seed)
     work = [(j, args.source, args.level, args.fresh) for j in jobs]
+    args.out.mkdir(parents=True, exist_ok=True)
+    records: list[dict[str, Any]] = []
     with tqdm(total=len(jobs), desc="residual study", unit="run",
-              disable=args.no_progress) as bar:
+              disable=args.no_progress) as bar, open(args.out / "runs.jsonl", "w") as log:
+        def done(rec: dict[str, Any]) -> None:  # each run as it ends: a cut study keeps them
+            records.append(rec)
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+            bar.update(1)
+
         if args.workers == 1:
-            records = []
             for w in work:
-                records.append(_run(w))
-                bar.update(1)
+                done(_run(w))
         else:
             with ProcessPoolExecutor(args.workers) as pool:
-                records = []
                 for rec in pool.map(_run, work, chunksize=1):
-                    records.append(rec)
-                    bar.update(1)
+                    done(rec)
     records.sort(key=lambda r: r["index"])
     summary = summarise(records)
     command = "scripts/residual_study.py " + " ".join(shlex.quote(a) for a in argv)
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "study.json").write_text(json.dumps(
         {"command": command, "source": args.source, "level": args.level, "seed": args.seed,
          "summary": summary, "runs": records}, indent=1) + "\n")

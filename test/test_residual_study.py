@@ -138,6 +138,7 @@ def test_the_study_script_is_independent_of_the_worker_count(tmp_path: Path) -> 
             capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert "| clean data, tasks |" in (out / "study.md").read_text()
+        assert len((out / "runs.jsonl").read_text().splitlines()) == 3
         return json.loads((out / "study.json").read_text())
 
     one, two = study(1), study(2)
