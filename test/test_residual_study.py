@@ -20,7 +20,7 @@ from residual_helpers import generate_tasks
 
 from model_learner_node.checkpoint import load_checkpoint, shipped_checkpoint
 from model_learner_node.effect_terms import Candidate, Term
-from model_learner_node.residual.analysis import corrected_model
+from model_learner_node.residual.analysis import corrected_model, task_drift
 from model_learner_node.residual.config import load_residual_config
 from model_learner_node.residual.data import horizons
 from model_learner_node.residual.decide import held_out_decision, open_loop_rmse
@@ -99,6 +99,12 @@ def test_a_between_task_drift_is_flagged(plant10, fresh, model, cfg) -> None:
     assert rec["detected"] and rec["task_drift"][rec["injection"]["channel"]], rec
     clean = run_job(Job(2, CLEAN, 0.0, 10, 31, 3), plant10, fresh, model, cfg)
     assert not any(clean["task_drift"].values()), clean
+    # the drifting channel is flagged, not the other (these clean tasks' own first-sample F_RZ
+    # trend is +0.16 N/task, p = 0.04: at 10 tasks a -0.35 N/task drift on F_RZ is not found)
+    for ch, other in (("fx", "fz"), ("fz", "fx")):
+        d = task_drift(model, Injection(TASK_OFFSET, ch, 0.4).apply(plant10), model.h, cfg)
+        assert d[ch]["drift"] and not d[other]["drift"], d
+        assert d[ch]["slope_n_per_task"] == pytest.approx(0.4, abs=0.2)
 
 
 def test_clean_simulator_data_claims_nothing(model, cfg) -> None:
