@@ -155,7 +155,11 @@ def test_other_bad_arguments(tmp_path: Path, small_bag: Path,
     refused("does not exist", str(tmp_path / "nope"), "--out", out)
     refused("--holdout", str(small_bag), "--holdout", "0.99", "--out", out)
     refused("--seed", str(small_bag), "--seed", "-1", "--out", out)
-    refused("no such checkpoint", str(small_bag), "--model", str(tmp_path / "x"), "--out", out)
+    refused(f"no such checkpoint: cannot read {tmp_path / 'x.safetensors'}", str(small_bag),
+            "--model", str(tmp_path / "x"), "--out", out)
+    (tmp_path / "metadata.yaml").write_text("a: 1\n")  # a file, but not a checkpoint
+    refused(f"cannot read {tmp_path / 'metadata.yaml'} as a checkpoint", str(small_bag),
+            "--model", str(tmp_path / "metadata.yaml"), "--out", out)
     (tmp_path / "p.yaml").write_text(
         "peel_residual:\n  ros__parameters:\n    residual:\n      holdot: 0.2\n")
     refused("unknown parameter 'residual.holdot'", str(small_bag), "--params",

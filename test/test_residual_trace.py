@@ -13,9 +13,11 @@ import pytest
 from residual_helpers import generate_tasks, write_bag
 
 from peel_model.effect_terms import Candidate
+from peel_residual import trace as trace_module
+from peel_residual.cli import warn_unconverged
 from peel_residual.config import load_residual_config
 from peel_residual.tasks import tasks_from_bag
-from peel_residual.trace import Column, Problem, trace
+from peel_residual.trace import Column, Problem, lasso_select, trace
 
 CFG = load_residual_config(bootstrap=100)
 
@@ -63,6 +65,24 @@ def test_a_term_that_hurts_the_open_loop_is_rejected() -> None:
     res = trace("force", p, cols, CFG, np.random.default_rng(1))
     assert res.findings == []
     assert any("open-loop error worse" in f.reason for f in res.rejected)
+
+
+def test_lasso_fits_that_do_not_converge_are_counted_and_warned(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    p, cols = _problem({"viscous_drag": 0.6})
+    _, ok = lasso_select(p, cols)
+    assert ok["unconverged_fits"] == 0
+    assert warn_unconverged({"force": trace("force", p, cols, CFG, np.random.default_rng(1))}) \
+        == []
+    monkeypatch.setattr(trace_module, "LASSO_MAX_ITER", 1)
+    _, bad = lasso_select(p, cols)
+    assert bad["unconverged_fits"] > 0
+    res = trace("force", p, cols, CFG, np.random.default_rng(1))
+    lines = warn_unconverged({"force": res, "v": res})
+    err = capsys.readouterr().err.splitlines()
+    assert err == lines and len(lines) == 2
+    assert f"{res.lasso['unconverged_fits']} lasso fit(s) on channel(s) fx, fz" in lines[0]
+    assert "on channel(s) v did not converge" in lines[1]
 
 
 @pytest.mark.parametrize("source", ["plant"])

@@ -204,3 +204,17 @@ class CompensatedPredictor(nn.Module):
         if not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
             raise PeelError(f"compensation dt_s must be a positive number, got {dt!r}")
         return cls(base, [Term.from_json(t) for t in obj["terms"]], dt_s=float(dt))
+
+
+def corrected_model(model: Any, terms: Sequence[Term], dt_s: float) -> CompensatedPredictor:
+    """``model`` with ``terms`` added; a term the model already has gets the coefficients added."""
+    base, old = (model.base, list(model.terms)) if isinstance(model, CompensatedPredictor) \
+        else (model, [])
+    merged = {(t.candidate.key, t.channel): t for t in old}
+    for t in terms:
+        prev = merged.get((t.candidate.key, t.channel))
+        if prev is not None:
+            t = Term(t.candidate, t.channel, tuple(a + b for a, b in zip(prev.coef, t.coef,
+                                                                          strict=True)), t.coef_std)
+        merged[(t.candidate.key, t.channel)] = t
+    return CompensatedPredictor(base, list(merged.values()), dt_s=dt_s)

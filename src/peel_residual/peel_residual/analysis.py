@@ -8,9 +8,12 @@
    left out of the fit: their input is the padding convention, not a measurement.
 3. **Trace** each channel (:mod:`.trace`): force channels against the candidates' one-step
    responses, the speed channel (v_{k+1} - u_k) against the velocity candidates.
-4. **Add** the named terms: :class:`~peel_model.compensated.CompensatedPredictor`.
-5. **Remains** (:mod:`.structure`), and **error before / after** on the held-out tasks
-   (:mod:`.evaluate`), one step and open loop over the planner's horizon.
+4. **Held-out decision** (:mod:`.decide`): a term that makes the held-out open-loop error worse
+   is dropped; **add** the rest: :class:`~peel_model.compensated.CompensatedPredictor`.
+5. **Remains** (:mod:`.structure`): one-step structure on the fit tasks, a drift across tasks
+   (the per-task mean open-loop residual against the task order, every task), and **error
+   before / after** on the held-out tasks (:mod:`.evaluate`), one step and open loop over the
+   planner's horizon.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from peel_model.compensated import CompensatedPredictor
+from peel_model.compensated import corrected_model
 from peel_model.effect_terms import FORCE_CHANNELS, VELOCITY_CHANNEL, Rows, Term
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
@@ -31,7 +34,14 @@ from . import evaluate as E
 from . import predict as P
 from .config import ResidualConfig
 from .data import Horizons, Steps, horizons, one_step_samples
-from .structure import Structure, one_step_structure, open_loop_drift, state_variables
+from .decide import held_out_decision
+from .structure import (
+    Structure,
+    drift_across_tasks,
+    one_step_structure,
+    open_loop_drift,
+    state_variables,
+)
 from .trace import Column, OpenLoopScore, Problem, Trace, trace
 
 
@@ -52,6 +62,7 @@ class Result:
     drift: dict[str, dict[str, Any]]
     shares: list[dict[str, Any]]
     samples: dict[str, int]
+    task_drift: dict[str, dict[str, Any]] = field(default_factory=dict)
     plots: dict[str, Any] = field(default_factory=dict)
 
 
@@ -62,20 +73,6 @@ def split_tasks(n: int, fraction: float, seed: int) -> tuple[list[int], list[int
     n_hold = min(n - 2, max(1, round(fraction * n)))
     order = np.random.default_rng(seed).permutation(n)
     return sorted(order[n_hold:].tolist()), sorted(order[:n_hold].tolist())
-
-
-def corrected_model(model: Any, terms: Sequence[Term], dt_s: float) -> CompensatedPredictor:
-    """``model`` with ``terms`` added; a term the model already has gets the coefficients added."""
-    base, old = (model.base, list(model.terms)) if isinstance(model, CompensatedPredictor) \
-        else (model, [])
-    merged = {(t.candidate.key, t.channel): t for t in old}
-    for t in terms:
-        prev = merged.get((t.candidate.key, t.channel))
-        if prev is not None:
-            t = Term(t.candidate, t.channel, tuple(a + b for a, b in zip(prev.coef, t.coef,
-                                                                          strict=True)), t.coef_std)
-        merged[(t.candidate.key, t.channel)] = t
-    return CompensatedPredictor(base, list(merged.values()), dt_s=dt_s)
 
 
 def open_loop_scorer(model: Any, hz: Horizons, weights: dict[str, float],
@@ -163,6 +160,59 @@ def terms_of(traces: dict[str, Trace]) -> list[Term]:
             for tr in traces.values() for f in tr.findings]
 
 
+def apply_decision(traces: dict[str, Trace], dropped: Sequence[tuple[Term, str]]) -> None:
+    """Move the findings the held-out decision dropped to their trace's ``rejected``."""
+    reasons = {(t.candidate.key, t.channel): why for t, why in dropped}
+    for tr in traces.values():
+        for f in list(tr.findings):
+            why = reasons.get((f.candidate.key, f.channel))
+            if why is not None:
+                f.reason = why
+                tr.findings.remove(f)
+                tr.rejected.append(f)
+
+
+def _end_residual(model: Any, hz: Horizons) -> tuple[np.ndarray, np.ndarray]:
+    """Force residual at each horizon's last valid step ``[m, 2]`` and the horizons kept."""
+    end = np.array([np.flatnonzero(v)[-1] if v.any() else -1 for v in hz.valid])
+    keep = np.flatnonzero(end >= 0)
+    err = hz.rows[:, -hz.steps:, 2:4] - P.open_loop(model, hz)
+    return err[keep, end[keep]], keep
+
+
+def task_drift(model: Any, tasks: Sequence[Trajectory], h: int, cfg: ResidualConfig
+               ) -> dict[str, dict[str, Any]]:
+    """Per force channel: does the force change with the task order (every task, in recording
+    order)? Tested on the measured force at each task's first sample -- the blade at rest at C,
+    the same state in every task, so an offset shows whole (:func:`~.structure.drift_across_tasks`):
+    on the task order alone, and, when the other channel shows no drift of its own, also with
+    the other channel's first sample as covariate (it takes out the task-to-task variation both
+    share; with a drifting covariate it would lend this channel the other's drift); the smaller
+    p-value, Bonferroni-corrected for the two tests. Beside it, for the record, the same test on
+    the per-task mean open-loop residual at the horizon end (the model, fed its own forces, lets
+    go of part of an offset in its history; noisier on the plant)."""
+    order = np.arange(len(tasks))
+    start = np.array([[tr.fx[0], tr.fz[0]] for tr in tasks])
+    plain = [drift_across_tasks(start[:, i], order, cfg.drift_alpha) for i in range(2)]
+    hz = horizons(tasks, h, cfg.horizon_steps, 2 * cfg.stride)
+    err, keep = _end_residual(model, hz)
+    ids = np.unique(hz.task[keep])
+    out = {}
+    for i, ch in enumerate(FORCE_CHANNELS):
+        flag = dict(plain[i], statistic="start_force")
+        other_p = plain[1 - i]["p"]
+        if other_p is not None and other_p >= cfg.drift_alpha:
+            cov = drift_across_tasks(start[:, i], order, cfg.drift_alpha, start[:, 1 - i])
+            if cov["p"] is not None and cov["p"] < (plain[i]["p"] or 1.0):
+                flag = dict(cov, statistic="start_force_with_other_channel")
+            flag["p"] = min(1.0, 2 * flag["p"])
+            flag["drift"] = flag["p"] < cfg.drift_alpha
+        per_task = np.array([err[hz.task[keep] == g, i].mean() for g in ids])
+        out[ch] = {**flag, "open_loop_residual": drift_across_tasks(per_task, ids,
+                                                                    cfg.drift_alpha)}
+    return out
+
+
 def _held_out(model: Any, corrected: Any | None, hold: list[Trajectory], h: int,
               cfg: ResidualConfig) -> tuple[E.Errors, E.Errors, dict[str, Any], list[Any]]:
     """Errors before and after on the held-out tasks, the open-loop drift left after the
@@ -179,8 +229,8 @@ def _held_out(model: Any, corrected: Any | None, hold: list[Trajectory], h: int,
 
 
 #: The stages :func:`analyse` reports to its ``progress`` callback.
-STAGES: tuple[str, ...] = ("residual and trace (forces)", "trace (speed)", "what remains",
-                           "error before/after")
+STAGES: tuple[str, ...] = ("residual and trace (forces)", "trace (speed)", "held-out decision",
+                           "what remains", "error before/after")
 
 
 def analyse(tasks: Sequence[Trajectory], model: Any, cfg: ResidualConfig, *,
@@ -205,25 +255,29 @@ def analyse(tasks: Sequence[Trajectory], model: Any, cfg: ResidualConfig, *,
     if speed is not None:
         traces[VELOCITY_CHANNEL], plots[VELOCITY_CHANNEL] = speed, vplot
     tick(STAGES[1])
-    terms = terms_of(traces)
+    hold = [tasks[i] for i in hold_idx]
+    terms, dropped = held_out_decision(model, terms_of(traces),
+                                       horizons(hold, h, cfg.horizon_steps, cfg.stride), dt_s)
+    apply_decision(traces, dropped)
     corrected = corrected_model(model, terms, dt_s) if terms else None
     after_model = corrected if corrected is not None else model
+    tick(STAGES[2])
 
     y_after = fit.f_next - P.one_step(after_model, fit)
     X = state_variables(fit)
     structure = [one_step_structure(ch, y_after[:, i], X, fit.task, cfg.folds,
                                     cfg.min_structure, cfg.seed)
                  for i, ch in enumerate(FORCE_CHANNELS)]
-    tick(STAGES[2])
-
-    before, after, drift, shares = _held_out(model, corrected, [tasks[i] for i in hold_idx],
-                                             h, cfg)
+    drift_tasks = task_drift(after_model, tasks, h, cfg)
     tick(STAGES[3])
+
+    before, after, drift, shares = _held_out(model, corrected, hold, h, cfg)
+    tick(STAGES[4])
     return Result(
         traces=traces, terms=terms, corrected=corrected, fit_tasks=fit_idx,
         holdout_tasks=hold_idx, rmse_before=before.rmse(), rmse_after=after.rmse(),
         by_step_before=before.by_step(), by_step_after=after.by_step(),
-        structure=structure, drift=drift, shares=shares,
+        structure=structure, drift=drift, shares=shares, task_drift=drift_tasks,
         samples={"fit_one_step": len(fit), "holdout_one_step": len(before.one_step),
                  "holdout_open_loop_runs": len(before.open_loop),
                  "horizon_steps": cfg.horizon_steps},

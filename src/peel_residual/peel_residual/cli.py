@@ -63,7 +63,10 @@ def check_model_inputs(path: Path) -> dict[str, Any]:
 
     st, js = checkpoint_paths(path)
     if not st.is_file():
-        raise PeelError(f"--model {path}: no such checkpoint ({st.name})")
+        if path.is_file():
+            raise PeelError(f"--model {path}: cannot read {path} as a checkpoint (a checkpoint is "
+                            f"a .safetensors file with its .json beside it; {st} does not exist)")
+        raise PeelError(f"--model {path}: no such checkpoint: cannot read {st}")
     cfg = read_checkpoint_config(js)
     units = cfg.get("units") or {}
     cols = units.get("hist_columns")
@@ -83,6 +86,20 @@ def _config(args: argparse.Namespace) -> Any:
         raise PeelError(f"--params: no such file {args.params}")
     changes = {k: getattr(args, k) for k in ("holdout", "seed") if getattr(args, k) is not None}
     return load_residual_config(args.params, **changes)
+
+
+def warn_unconverged(traces: dict[str, Any]) -> list[str]:
+    """One stderr line per traced channel group whose lasso fits did not all converge."""
+    lines = []
+    for group, tr in traces.items():
+        n = int(tr.lasso.get("unconverged_fits", 0))
+        if n:
+            channels = "fx, fz" if group == "force" else group
+            lines.append(f"peel residual: warning: {n} lasso fit(s) on channel(s) {channels} "
+                         f"did not converge (report.json: selection.{group}.lasso)")
+    for line in lines:
+        print(line, file=sys.stderr)
+    return lines
 
 
 def _save_corrected(out: Path, result: Any, model_path: Path, bags: list[str]) -> Path:
@@ -123,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
             bar.update(1)
 
         result = analyse(tasks, model, cfg, dt_s=dt, progress=tick)
+    warn_unconverged(result.traces)
     with out as out_dir:  # created only now: bad input above leaves nothing behind
         corrected = None
         if result.corrected is not None:
@@ -137,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
                       "effects": [{k: e[k] for k in ("key", "channel", "expression",
                                                      "explained_variance")}
                                   for e in rep["effects"]],
-                      "rmse_before": rep["rmse_before"], "rmse_after": rep["rmse_after"]},
+                      "rmse_before": rep["rmse_before"], "rmse_after": rep["rmse_after"],
+                      "verdicts": {ch: v["verdict"] for ch, v in rep["verdicts"].items()}},
                      indent=1))
     return 0
 

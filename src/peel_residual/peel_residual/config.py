@@ -29,6 +29,7 @@ class ResidualConfig:
     ci_level: float = 0.95
     bootstrap: int = 200
     min_structure: float = 0.05
+    drift_alpha: float = 0.01
     candidates: tuple[Candidate, ...] = ()
 
     @classmethod
@@ -58,7 +59,7 @@ class ResidualConfig:
         return cls(holdout=p["holdout"], seed=p["seed"], folds=p["folds"],
                    horizon_steps=horizon, stride=p["stride"], min_explained=p["min_explained"],
                    ci_level=p["ci_level"], bootstrap=p["bootstrap"],
-                   min_structure=p["min_structure"],
+                   min_structure=p["min_structure"], drift_alpha=p["drift_alpha"],
                    candidates=tuple(candidates_from_grid(grid)))
 
 

@@ -47,6 +47,9 @@ RESIDUAL_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("residual.min_structure", float, 0.05,
               "held-out R^2 of a flexible regressor above which structure remains", min=0.0,
               max=1.0),
+    ParamSpec("residual.drift_alpha", float, 0.01,
+              "significance of the per-task residual's slope over the task order (drift across "
+              "tasks)", min=1e-6, max=0.5),
     ParamSpec("residual.families", list, list(FAMILY_NAMES), "candidate families"),
     *(ParamSpec(f"residual.{name}", list, list(grid), f"shape parameters of {fam}")
       for name, (fam, grid) in GRIDS.items()),

@@ -101,6 +101,9 @@ def build_json(result: Result, tasks: list[Trajectory], cfg: ResidualConfig,
     for ch, d in result.drift.items():
         unexplained.append({"channel": ch, "mode": "open_loop_drift", **d,
                             "horizon_s": cfg.horizon_steps * info["dt_s"]})
+    for ch, d in result.task_drift.items():
+        unexplained.append({"channel": ch, "mode": "drift_across_tasks", "variable": "task_order",
+                            **d})
     return {
         "format": "peel-residual-report/1",
         **info,
@@ -117,14 +120,42 @@ def build_json(result: Result, tasks: list[Trajectory], cfg: ResidualConfig,
                           "rows": tr.n_rows, "tasks": tr.n_tasks}
                       for g, tr in result.traces.items()},
         "unexplained": unexplained,
+        "verdicts": verdicts(effects, unexplained),
         "samples": result.samples,
         "settings": {"holdout": cfg.holdout, "seed": cfg.seed, "folds": cfg.folds,
                      "horizon_steps": cfg.horizon_steps, "stride": cfg.stride,
                      "min_explained": cfg.min_explained, "ci_level": cfg.ci_level,
                      "bootstrap": cfg.bootstrap, "min_structure": cfg.min_structure,
+                     "drift_alpha": cfg.drift_alpha,
                      "candidates": [c.key for c in cfg.candidates]},
         "figures": {"rmse": figures["rmse"], "open_loop_error": figures["horizon"]},
     }
+
+
+def verdicts(effects: list[dict[str, Any]], unexplained: list[dict[str, Any]]
+             ) -> dict[str, dict[str, Any]]:
+    """Per force channel: what was named and what structure remains, and where (which
+    variable); ``no structure left`` only when no check finds any."""
+    out = {}
+    for ch in FORCE_CHANNELS:
+        named = [e["key"] for e in effects if e["channel"] == ch]
+        remains = []
+        for u in unexplained:
+            if u["channel"] != ch:
+                continue
+            if u["mode"] == "one_step" and u["remains"]:
+                remains.append({"kind": "one_step_structure",
+                                "variables": list(u["importance"]), "heldout_r2": u["heldout_r2"]})
+            elif u["mode"] == "open_loop_drift" and u["drift"]:
+                remains.append({"kind": "open_loop_drift", "variables": ["horizon_step"],
+                                "mean_n": u["mean_n"], "se_n": u["se_n"]})
+            elif u["mode"] == "drift_across_tasks" and u["drift"]:
+                remains.append({"kind": "drift_across_tasks", "variables": ["task_order"],
+                                "slope_n_per_task": u["slope_n_per_task"], "p": u["p"]})
+        verdict = ("named" if named else "unexplained") if remains else \
+            ("named" if named else "no structure left")
+        out[ch] = {"verdict": verdict, "named": named, "remains": remains}
+    return out
 
 
 def _fmt(x: float | None, nd: int = 3) -> str:
@@ -191,6 +222,13 @@ def _md_remains(rep: dict[str, Any]) -> list[str]:
     """What remains after the correction."""
     L: list[str] = []
     L += ["", "## What remains", ""]
+    for ch, v in rep["verdicts"].items():
+        where = "; ".join(f"{r['kind'].replace('_', ' ')} ({', '.join(r['variables'])})"
+                          for r in v["remains"])
+        L.append(f"* **{ch}: {v['verdict']}**" + (f", named {', '.join(v['named'])}"
+                                                  if v["named"] else "")
+                 + (f"; structure remains: {where}" if where else "") + ".")
+    L.append("")
     for u in rep["unexplained"]:
         if u["mode"] == "one_step":
             if u["remains"]:
@@ -204,6 +242,15 @@ def _md_remains(rep: dict[str, Any]) -> list[str]:
                 L.append(f"* {u['channel']}, one step: no structure left that the state "
                          f"variables predict (flexible regressor held-out R^2 "
                          f"{u['heldout_r2']:.2f}).")
+        elif u["mode"] == "drift_across_tasks":
+            if u["slope_n_per_task"] is None:
+                continue
+            what = ("**a drift across tasks**: the offset changes from one task to the next"
+                    if u["drift"] else "no significant drift across tasks")
+            L.append(f"* {u['channel']}, across tasks: the force at each task's first sample "
+                     f"(blade at rest at C; the other channel's as covariate) against the task "
+                     f"order, slope {u['slope_n_per_task']:+.3f} ± {u['se']:.3f} N per "
+                     f"task (p = {u['p']:.2g}, {u['tasks']} tasks): {what}.")
         else:
             what = ("a systematic open-loop drift of the model" if u["drift"]
                     else "no significant drift")

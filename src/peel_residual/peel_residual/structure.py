@@ -85,3 +85,32 @@ def open_loop_drift(resid_end: np.ndarray, groups: np.ndarray) -> dict[str, Any]
     se = float(per_task.std(ddof=1) / np.sqrt(len(ids))) if len(ids) > 1 else float("nan")
     return {"mean_n": mean, "se_n": se, "tasks": len(ids),
             "drift": bool(np.isfinite(se) and abs(mean) > 3 * se)}
+
+
+def drift_across_tasks(per_task: np.ndarray, order: np.ndarray, alpha: float,
+                       covariate: np.ndarray | None = None) -> dict[str, Any]:
+    """Whether a per-task force changes with the task order (a between-task drift).
+
+    Ordinary least squares of ``per_task`` (one value per task, N) on an intercept, ``order``
+    (the tasks' position in the recording) and, when given, ``covariate`` (per task: the other
+    channel's value, which takes out the task-to-task variation both channels share); the order
+    coefficient's t statistic with n - p degrees of freedom; flagged when its two-sided p-value
+    is below ``alpha``. A force offset that changes from one task to the next but is constant
+    within each (pad wear, a sensor zero that moves between tasks) is invisible to every
+    within-task candidate and shows here."""
+    from scipy.stats import t as student_t
+
+    cols = [np.ones(per_task.size), order.astype(float) - order.mean()]
+    if covariate is not None:
+        cols.append(covariate - covariate.mean())
+    X = np.column_stack(cols)
+    dof = per_task.size - X.shape[1]
+    if dof < 2:
+        return {"slope_n_per_task": None, "se": None, "p": None, "tasks": int(per_task.size),
+                "drift": False}
+    b, *_ = np.linalg.lstsq(X, per_task, rcond=None)
+    r = per_task - X @ b
+    se = float(np.sqrt(np.linalg.pinv(X.T @ X)[1, 1] * (r @ r) / dof))
+    p = float(2 * student_t.sf(abs(b[1]) / se, dof)) if se > 0 else 0.0
+    return {"slope_n_per_task": float(b[1]), "se": se, "p": p, "tasks": int(per_task.size),
+            "drift": p < alpha}

@@ -46,6 +46,10 @@ from peel_model.effect_terms import Candidate
 
 from .config import ResidualConfig
 
+#: Coordinate-descent iterations of each lasso fit (a fit that needs more is counted as not
+#: converged in ``Trace.lasso["unconverged_fits"]`` and warned about by ``peel residual``).
+LASSO_MAX_ITER = 20000
+
 #: ``(terms [(candidate, channel, coefficients)], test task ids) -> open-loop SSE``.
 OpenLoopScore = Callable[[list[tuple[Candidate, str, np.ndarray]], np.ndarray], float]
 
@@ -194,6 +198,14 @@ def bootstrap_coefs(p: Problem, cols: Sequence[Column], n: int,
     return out
 
 
+def _one_se_alpha(cv: LassoCV) -> float:
+    """The largest alpha whose cross-validated error is within one SE of the minimum."""
+    mse = cv.mse_path_  # [n_alphas, n_folds], alphas_ descending
+    mean, se = mse.mean(axis=1), mse.std(axis=1) / np.sqrt(mse.shape[1])
+    best = int(np.argmin(mean))
+    return float(cv.alphas_[int(np.flatnonzero(mean <= mean[best] + se[best])[0])])
+
+
 def lasso_select(p: Problem, cols: Sequence[Column]) -> tuple[list[int], dict[str, Any]]:
     """Indices of the terms the one-standard-error lasso keeps, and its path summary."""
     X = _design(cols)
@@ -201,16 +213,14 @@ def lasso_select(p: Problem, cols: Sequence[Column]) -> tuple[list[int], dict[st
     Xs = X / np.where(scale > 1e-12, scale, 1.0)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ConvergenceWarning)
-        cv = LassoCV(fit_intercept=False, cv=p.splits, alphas=40, eps=1e-2, max_iter=20000,
-                     tol=1e-4).fit(Xs, p.y)
-    mse = cv.mse_path_  # [n_alphas, n_folds], alphas_ descending
-    mean, se = mse.mean(axis=1), mse.std(axis=1) / np.sqrt(mse.shape[1])
-    best = int(np.argmin(mean))
-    alpha = float(cv.alphas_[int(np.flatnonzero(mean <= mean[best] + se[best])[0])])
-    coef = Lasso(alpha=alpha, fit_intercept=False, max_iter=20000).fit(Xs, p.y).coef_
+        cv = LassoCV(fit_intercept=False, cv=p.splits, alphas=40, eps=1e-2,
+                     max_iter=LASSO_MAX_ITER, tol=1e-4).fit(Xs, p.y)
+        coef = Lasso(alpha=_one_se_alpha(cv), fit_intercept=False,
+                     max_iter=LASSO_MAX_ITER).fit(Xs, p.y).coef_
+    best = int(np.argmin(cv.mse_path_.mean(axis=1)))
     owner = np.concatenate([np.full(c.X.shape[1], i) for i, c in enumerate(cols)])
     keep = sorted({int(owner[j]) for j in np.flatnonzero(np.abs(coef) > 0)})
-    return keep, {"alpha_min": float(cv.alphas_[best]), "alpha_1se": alpha,
+    return keep, {"alpha_min": float(cv.alphas_[best]), "alpha_1se": _one_se_alpha(cv),
                   "kept": [cols[i].key for i in keep],
                   "unconverged_fits": sum(issubclass(w.category, ConvergenceWarning)
                                           for w in caught)}

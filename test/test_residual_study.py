@@ -1,0 +1,154 @@
+"""The power study's machinery on small draws, and the held-out decision (docs/residual.md).
+
+Clean tasks from PeelEnv under exploratory command profiles (``residual_helpers``), effects
+drawn by ``peel_residual.inject`` and added on the measurement side, analysed
+with the shipped model through ``peel_residual.study.run_job``; the study script
+run as a real process with 1 and 2 workers. Seeds here (3, 31, 41) are not the report's.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from residual_helpers import generate_tasks
+
+from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+from peel_model.effect_terms import Candidate, Term
+from peel_residual.analysis import corrected_model, task_drift
+from peel_residual.config import load_residual_config
+from peel_residual.data import horizons
+from peel_residual.decide import held_out_decision, open_loop_rmse
+from peel_residual.inject import SHAPE_RANGES, TASK_OFFSET, Injection, draw
+from peel_residual.study import CLEAN, Job, plan_jobs, run_job, summarise
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.set_num_threads(1)
+    return load_checkpoint(shipped_checkpoint())
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_residual_config()
+
+
+@pytest.fixture(scope="module")
+def plant10():
+    return generate_tasks("plant", n=10, seed=31)
+
+
+@pytest.fixture(scope="module")
+def fresh():
+    return generate_tasks("plant", n=3, seed=41)
+
+
+def test_draws_are_seeded_and_inside_the_stated_ranges() -> None:
+    for fam in (*SHAPE_RANGES, TASK_OFFSET):
+        a = [draw(fam, 1.5, np.random.default_rng([7, i])) for i in range(20)]
+        b = [draw(fam, 1.5, np.random.default_rng([7, i])) for i in range(20)]
+        assert a == b
+        assert {x.channel for x in a} == {"fx", "fz"}
+        for x in a:
+            for name, v in x.shape.items():
+                lo, hi = SHAPE_RANGES[fam][name]
+                assert lo <= v <= hi
+            assert abs(x.amplitude_n) == 1.5 or (fam == TASK_OFFSET
+                                                 and 0.3 <= abs(x.amplitude_n) <= 0.5)
+    jobs = plan_jobs(["viscous_drag", TASK_OFFSET], [1.0, 2.0], [10], draws=2, clean=3, seed=5)
+    assert [j.family for j in jobs].count(CLEAN) == 3
+    assert [j.family for j in jobs].count(TASK_OFFSET) == 2  # once per task count, not per amp
+    assert len({j.index for j in jobs}) == len(jobs)
+
+
+def test_injection_adds_exactly_the_drawn_shape(plant10) -> None:
+    inj = Injection("periodic_adhesion", "fz", -1.5, {"lambda_mm": 5.0, "phase_rad": 0.3})
+    out = inj.apply(plant10)
+    for a, b in zip(plant10, out, strict=True):
+        assert np.array_equal(a.fx, b.fx)
+        assert np.allclose(b.fz - a.fz, -1.5 * np.sin(2 * np.pi * a.q / 5.0 + 0.3))
+    off = Injection(TASK_OFFSET, "fx", 0.4).apply(plant10)
+    steps = [float(np.mean(b.fx - a.fx)) for a, b in zip(plant10, off, strict=True)]
+    assert np.allclose(np.diff(steps), 0.4)
+    assert all(np.ptp(b.fx - a.fx) < 1e-12 for a, b in zip(plant10, off, strict=True))
+
+
+def test_a_drawn_effect_is_named(plant10, fresh, model, cfg) -> None:
+    job = Job(0, "periodic_adhesion", 2.0, 10, 31, 3)
+    rec = run_job(job, plant10, fresh, model, cfg)
+    inj = rec["injection"]
+    assert rec["detected"], rec
+    assert any(n.startswith("periodic_adhesion") and n.endswith("@" + inj["channel"])
+               for n in rec["named"])
+    ch = inj["channel"]
+    assert rec["heldout_open_loop_ratio"][ch] < 0.9
+    assert rec["fresh_open_loop_ratio"][ch] < 0.9  # on tasks the analysis never saw
+
+
+def test_a_between_task_drift_is_flagged(plant10, fresh, model, cfg) -> None:
+    job = Job(1, TASK_OFFSET, 0.0, 10, 31, 3)
+    rec = run_job(job, plant10, fresh, model, cfg)
+    assert rec["detected"] and rec["task_drift"][rec["injection"]["channel"]], rec
+    clean = run_job(Job(2, CLEAN, 0.0, 10, 31, 3), plant10, fresh, model, cfg)
+    assert not any(clean["task_drift"].values()), clean
+    # the drifting channel is flagged, not the other (these clean tasks' own first-sample F_RZ
+    # trend is +0.16 N/task, p = 0.04: at 10 tasks a -0.35 N/task drift on F_RZ is not found)
+    for ch, other in (("fx", "fz"), ("fz", "fx")):
+        d = task_drift(model, Injection(TASK_OFFSET, ch, 0.4).apply(plant10), model.h, cfg)
+        assert d[ch]["drift"] and not d[other]["drift"], d
+        assert d[ch]["slope_n_per_task"] == pytest.approx(0.4, abs=0.2)
+
+
+def test_clean_simulator_data_claims_nothing(model, cfg) -> None:
+    tasks, fresh_sim = generate_tasks("sim", n=8, seed=3), generate_tasks("sim", n=2, seed=4)
+    rec = run_job(Job(0, CLEAN, 0.0, 8, 3, 3), tasks, fresh_sim, model, cfg)
+    assert rec["detected"] is None and not rec["claimed"], rec
+    assert rec["named"] == []
+    s = summarise([rec])
+    assert s["clean"][0]["false_alarm_rate"] == 0.0 and s["power"] == []
+
+
+def test_a_term_that_worsens_the_held_out_open_loop_is_never_kept(plant10, model, cfg) -> None:
+    """On data with a true +1.5 N F_RZ offset: the true term is kept, a wrong F_RX offset (it
+    raises F_RX's held-out open-loop error) is dropped, and no channel ends worse."""
+    data = Injection("sensor_offset", "fz", 1.5).apply(plant10)
+    hz = horizons(data[:4], model.h, cfg.horizon_steps, cfg.stride)
+    good = Term(Candidate("sensor_offset"), "fz", (1.5,))
+    bad = Term(Candidate("sensor_offset"), "fx", (3.0,))
+    base = open_loop_rmse(model, hz)
+    assert open_loop_rmse(corrected_model(model, [good, bad], 0.1), hz)["fx"] > base["fx"]
+    kept, dropped = held_out_decision(model, [good, bad], hz, 0.1)
+    assert kept == [good] and [t for t, _ in dropped] == [bad]
+    assert "held-out open-loop error of fx worse" in dropped[0][1]
+    after = open_loop_rmse(corrected_model(model, kept, 0.1), hz)
+    assert all(after[ch] <= base[ch] for ch in base)
+    assert after["fz"] < base["fz"]
+
+
+def test_the_study_script_is_independent_of_the_worker_count(tmp_path: Path) -> None:
+    def study(workers: int) -> dict:
+        out = tmp_path / f"w{workers}"
+        proc = subprocess.run(
+            [sys.executable, str(ROOT / "scripts" / "residual_study.py"), "--out", str(out),
+             "--families", "sensor_offset," + TASK_OFFSET, "--amplitudes", "1", "--tasks", "5",
+             "--draws", "1", "--clean", "1", "--source", "sim", "--fresh", "2", "--seed", "3",
+             "--workers", str(workers), "--no-progress"],
+            capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert "| clean data, tasks |" in (out / "study.md").read_text()
+        assert len((out / "runs.jsonl").read_text().splitlines()) == 3
+        return json.loads((out / "study.json").read_text())
+
+    one, two = study(1), study(2)
+    strip = [{k: v for k, v in r.items() if k != "wall_s"} for r in one["runs"]]
+    assert strip == [{k: v for k, v in r.items() if k != "wall_s"} for r in two["runs"]]
+    assert [r["family"] for r in one["runs"]] == ["sensor_offset", TASK_OFFSET, CLEAN]
+    assert len(one["summary"]["power"]) == 2 and one["summary"]["clean"][0]["runs"] == 1
