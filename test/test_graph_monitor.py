@@ -1,17 +1,21 @@
 """The launcher's monitor node (``peel_bringup.monitor_node``): which model versions it counts as
-announced. The planner announces each version on two latched topics at once
-(``/peel/model_version``, and the record with its identity on ``/peel/model_info``); either one
-arriving counts, so a latched sample DDS does not deliver to one reader loses no version."""
+the planner's. Any record of a version counts: the two latched topics the planner announces it
+on at once (``/peel/model_version``, and the record with its identity on ``/peel/model_info``), a
+finished trajectory's ``model_versions``, the learner's report of a swapped update; so a latched
+sample DDS delivers late, or not at all, to one reader loses no version."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 from std_msgs.msg import Int64, String
 
 from peel_bringup.monitor_node import GraphMonitor, close_monitor, open_monitor
-from peel_msgs_py.modelinfo import ModelRecord
+from peel_msgs_py.modelinfo import ModelRecord, UpdateReport
+from peel_msgs_py.ros.messages import trajectory_msg
+from peel_msgs_py.trajectory import Trajectory
 
 pytestmark = pytest.mark.process  # creates an rclpy node on a domain of its own
 
@@ -47,3 +51,28 @@ def test_bad_announcements_are_dropped_and_counted(monitor: GraphMonitor) -> Non
     monitor.on_model_info(String(data="{not json"))
     assert monitor.versions == [] and monitor.version is None
     assert monitor.drops.total == 2
+
+
+def _trajectory(versions: list[int]) -> object:
+    n = 4
+    z = np.zeros(n)
+    return trajectory_msg(Trajectory(t=np.arange(n) * 0.1, q=np.linspace(0.0, 1.0, n), v=z, u=z,
+                                     fx=z, fz=z, psi=z, outcome="done",
+                                     meta={"task_index": 0, "model_version": versions[0],
+                                           "model_versions": versions}))
+
+
+def test_versions_in_a_trajectory_and_a_swapped_report_are_announced(
+        monitor: GraphMonitor) -> None:
+    monitor.on_trajectory(_trajectory([0, 1]))
+    assert len(monitor.trajectories) == 1 and sorted(set(monitor.versions)) == [0, 1]
+    report = UpdateReport("model_learner_node", 1, "swapped", version=2)
+    monitor.on_model_update(String(data=report.to_json()))
+    assert monitor.version == 2 and sorted(set(monitor.versions)) == [0, 1, 2]
+
+
+def test_a_refused_or_foreign_report_announces_nothing(monitor: GraphMonitor) -> None:
+    for rep in (UpdateReport("model_learner_node", 1, "refused", reason="worse"),
+                UpdateReport("someone_else", 1, "swapped", version=5)):
+        monitor.on_model_update(String(data=rep.to_json()))
+    assert monitor.versions == [] and monitor.version is None

@@ -18,7 +18,7 @@ from std_msgs.msg import Float64MultiArray, Int64, String
 
 from peel_msgs_py import codec, topics
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
+from peel_msgs_py.modelinfo import SWAPPED, ModelRecord, UpdateReport, UpdateWait
 from peel_msgs_py.wire import DropLog, trajectory_nonfinite
 
 NODE_NAME = "peel_graph"
@@ -32,11 +32,13 @@ class GraphMonitor(Node):
     """Collects the finished trajectories, the model versions the planner announces and the
     learner's updates (``updates``: the planner's records and the reports of ``learner``).
 
-    The planner announces each version twice at once: the number on ``/peel/model_version`` and
-    the record with its identity on ``/peel/model_info``, both latched. A version counts as
-    announced when either arrives: in 2 of about 1400 graph runs of the test suite the
+    A version counts as the planner's when any record of it arrives: the number on
+    ``/peel/model_version`` or the record on ``/peel/model_info`` (the planner publishes both at
+    once, latched), a finished trajectory's ``model_versions`` (the versions its bridge saw
+    during the task), or the learner's report of an update the planner swapped in. The latched
+    samples alone are not enough: in 2 of about 1400 graph runs of the test suite the
     launcher's reader of ``/peel/model_version`` received nothing for a whole run while every
-    other topic flowed, so the launcher does not stake its report on one latched sample.
+    other topic flowed, and in a demo run the launcher saw v0 only after task 1 had finished.
     """
 
     def __init__(self, learner: str) -> None:
@@ -85,6 +87,9 @@ class GraphMonitor(Node):
             self.drop(topics.TRAJECTORY, f"'{bad}'", "holds non-finite values")
             return
         self.trajectories.append(traj)
+        for v in traj.meta.get("model_versions") or []:
+            if isinstance(v, int) and v >= 0:
+                self.announced(v)
 
     def on_version(self, msg: Int64) -> None:
         if msg.data < 0:
@@ -109,9 +114,14 @@ class GraphMonitor(Node):
 
     def on_model_update(self, msg: String) -> None:
         try:
-            self.updates.add_report(UpdateReport.from_json(msg.data))
+            rep = UpdateReport.from_json(msg.data)
         except PeelError as exc:
             self.drop(topics.MODEL_UPDATE, "data", f"is not an update report: {exc}")
+            return
+        self.updates.add_report(rep)
+        if rep.producer == self.updates.producer and rep.status == SWAPPED \
+                and rep.version is not None:
+            self.announced(rep.version)
 
 
 def open_monitor(learner: str) -> GraphMonitor:
