@@ -58,7 +58,7 @@ class Stranger:
                                       topics.qos_profile(topics.WRENCH, subscriber=True))
         self.stamps: list[tuple[int, str]] = []  # (stamp ns, frame) of the simulator's samples
         self.planner: int | None = None
-        self.armed = self.stopped = False
+        self.armed = self.stopped = self.may_stop = False
         self._last_bad = -math.inf
         self.cmd = self.wrench = self.traj = None
         self._stop = threading.Event()
@@ -96,7 +96,7 @@ class Stranger:
         if not (msg.header.frame_id.startswith("peel_task_") and math.isfinite(msg.wrench.force.x)):
             return
         self.stamps.append((t, msg.header.frame_id))
-        if not self.stopped and self.planner is not None and self.matched():
+        if self.may_stop and not self.stopped and self.planner is not None and self.matched():
             os.kill(self.planner, signal.SIGSTOP)  # its answers in flight are the last ones
             self.stopped = self.armed = True
         if self.armed:
@@ -180,6 +180,15 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         lines = Lines(proc)
         planner = int(lines.wait_for(r"started peel_planner_node \(pid (\d+)\)", 120).group(1))
         stranger.add_publishers(planner)  # the launcher has looked for other graphs
+        # the NaN wrench first, while the planner runs (the stranger's commands below can end
+        # both tasks with a safety stop within a second of the planner's resume): one a second
+        # until the planner logs its drop
+        plan_log = tmp_path / "run" / "logs" / "peel_planner_node.log"
+        _wait(lambda: bool(stranger.stamps) and stranger.matched()
+              and stranger.send_bad_wrench_every(1.0)
+              and "dropped a /peel/wrench message" in plan_log.read_text(), 300,
+              "the planner to drop the NaN wrench")
+        stranger.may_stop = True
         _wait(lambda: stranger.stopped, 300, "a sample once the stranger is matched")
         stranger.send_bad_wrench_and_trajectory()
         # the simulator re-sends a waiting sample every node.cmd_timeout_s; it logs a clamp
@@ -187,15 +196,6 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         _wait(lambda: "clamped a /peel/cmd_vel" in sim_log.read_text(), 300,
               "the simulator to execute the stranger's command")
         stranger.resume_planner()
-        # the NaN wrench sent while the planner was stopped can leave its reader's queue
-        # (keep last 10) before it wakes, and a planner stopped longer than DDS's participant
-        # lease (20 s, a loaded machine) is dropped from discovery until it announces itself
-        # again, so a wrench sent at once may reach no reader: send one a second until the
-        # planner logs its drop
-        plan_log = tmp_path / "run" / "logs" / "peel_planner_node.log"
-        _wait(lambda: stranger.send_bad_wrench_every(1.0) and
-              "dropped a /peel/wrench message" in plan_log.read_text(), 300,
-              "the planner to drop the NaN wrench")
         rc = proc.wait(timeout=400)
     finally:
         stranger.close()
