@@ -29,7 +29,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, String
 
-from peel_msgs_py import codec, topics
+from peel_msgs_py import inbox, topics
 from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.modelinfo import FAILED, OFFERED, REFUSED, SWAPPED, UpdateReport
@@ -37,7 +37,7 @@ from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
-from peel_msgs_py.wire import DropLog, trajectory_nonfinite
+from peel_msgs_py.wire import DropLog
 
 from .health import LearnerHealth
 from .online import OnlineLearner, task_number
@@ -76,17 +76,9 @@ class LearnerNode(NamedRefusals, Node):
     def on_trajectory(self, msg: Float64MultiArray) -> None:
         """A finished task, queued for the worker; one that does not decode or holds
         non-finite values is dropped here (counted, logged at most every few seconds)."""
-        try:
-            traj = codec.trajectory_from_msg(msg)
-        except PeelError as exc:
-            self.log_drop(self.drops.drop(topics.TRAJECTORY, "layout", f"does not decode: {exc}"))
-            return
-        bad = trajectory_nonfinite(traj)
-        if bad is not None:
-            self.log_drop(self.drops.drop(topics.TRAJECTORY, f"'{bad}'",
-                                          "holds non-finite values"))
-            return
-        self.queue.put(traj)
+        traj = inbox.take(self.drops, topics.TRAJECTORY, inbox.trajectory, msg, self.log_drop)
+        if traj is not None:
+            self.queue.put(traj)
 
     def log_drop(self, line: str | None) -> None:
         if line is not None:

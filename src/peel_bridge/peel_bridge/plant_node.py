@@ -28,9 +28,8 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray, String
 
-from peel_msgs_py import codec, topics
-from peel_msgs_py.errors import PeelError
-from peel_msgs_py.modelinfo import ModelRecord, UpdateReport, UpdateWait
+from peel_msgs_py import codec, inbox, topics
+from peel_msgs_py.modelinfo import UpdateWait
 from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.task import Sample
@@ -69,11 +68,8 @@ class PlantTopics:
     # -- model following ------------------------------------------------------------------
     def on_model_info(self, msg: String) -> None:
         """The planner's active model (version and identity)."""
-        try:
-            rec = ModelRecord.from_json(msg.data)
-        except PeelError as exc:
-            self.log_drop(self.drops.drop(topics.MODEL_INFO, "data",
-                                          f"is not a model record: {exc}"))
+        rec = inbox.take(self.drops, topics.MODEL_INFO, inbox.model_record, msg, self.log_drop)
+        if rec is None:
             return
         self.updates.add_record(rec)
         self.model_version = rec.version
@@ -81,11 +77,9 @@ class PlantTopics:
 
     def on_model_update(self, msg: String) -> None:
         """The learner's report on its update after a task."""
-        try:
-            self.updates.add_report(UpdateReport.from_json(msg.data))
-        except PeelError as exc:
-            self.log_drop(self.drops.drop(topics.MODEL_UPDATE, "data",
-                                          f"is not an update report: {exc}"))
+        rep = inbox.take(self.drops, topics.MODEL_UPDATE, inbox.update_report, msg, self.log_drop)
+        if rep is not None:
+            self.updates.add_report(rep)
 
     def readiness(self) -> Readiness:
         """What the task loop needs to see of the graph: model, readers, the learner's updates."""

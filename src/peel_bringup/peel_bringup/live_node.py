@@ -32,13 +32,12 @@ from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, Int64, String
 
-from peel_msgs_py import codec, topics
+from peel_msgs_py import inbox, topics
 from peel_msgs_py.cliargs import ArgumentParser, int_arg, run_main
 from peel_msgs_py.errors import PeelError
-from peel_msgs_py.modelinfo import ModelRecord, UpdateReport
 from peel_msgs_py.params import load_node_params
 from peel_msgs_py.ros.main import exit_now, run_node
-from peel_msgs_py.wire import DropLog, trajectory_nonfinite
+from peel_msgs_py.wire import DropLog
 
 from . import live_schema as S
 from .graph import LIVE, LIVE_HOST, LIVE_PORT
@@ -122,31 +121,29 @@ class LiveNode(Node):
         except ValueError:
             self.drop(topic, "a field", "holds a non-finite number (not sent)")
 
+    def warn(self, line: str) -> None:
+        self.get_logger().warn(line)
+
     def on_model_info(self, msg: String) -> None:
-        try:
-            rec = ModelRecord.from_json(msg.data)
-        except PeelError as exc:
-            self.drop(topics.MODEL_INFO, "data", f"is not a model record: {exc}")
+        rec = inbox.take(self.drops, topics.MODEL_INFO, inbox.model_record, msg, self.warn)
+        if rec is None:
             return
         self.send(S.LIVE_MODEL, S.model_record(rec), self.now_ns())
 
     def on_model_update(self, msg: String) -> None:
-        try:
-            rep = UpdateReport.from_json(msg.data)
-        except PeelError as exc:
-            self.drop(topics.MODEL_UPDATE, "data", f"is not an update report: {exc}")
+        rep = inbox.take(self.drops, topics.MODEL_UPDATE, inbox.update_report, msg, self.warn)
+        if rep is None:
             return
         self.send(S.LIVE_UPDATE, S.update_report(rep), self.now_ns())
 
     def on_trajectory(self, msg: Float64MultiArray) -> None:
+        traj = inbox.take(self.drops, topics.TRAJECTORY, inbox.trajectory, msg, self.warn)
+        if traj is None:
+            return
         try:
-            traj = codec.trajectory_from_msg(msg)
-            bad = trajectory_nonfinite(traj)
-            if bad is not None:
-                raise PeelError(f"'{bad}' holds non-finite values")
             terms = self.terms(traj)
         except PeelError as exc:
-            self.drop(topics.TRAJECTORY, "layout", f"does not decode: {exc}")
+            self.drop(topics.TRAJECTORY, "cost terms", f"cannot be computed: {exc}")
             return
         self.tasks_seen += 1
         task = int(traj.meta.get("task_index", self.tasks_seen - 1)) + 1

@@ -16,10 +16,9 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Float64MultiArray, Int64, String
 
-from peel_msgs_py import codec, topics
-from peel_msgs_py.errors import PeelError
-from peel_msgs_py.modelinfo import SWAPPED, ModelRecord, UpdateReport, UpdateWait
-from peel_msgs_py.wire import DropLog, trajectory_nonfinite
+from peel_msgs_py import inbox, topics
+from peel_msgs_py.modelinfo import SWAPPED, UpdateWait
+from peel_msgs_py.wire import DropLog
 
 NODE_NAME = "peel_graph"
 #: The names of peel's nodes (launcher, bridges, planner, learner, recorder, live view): one on the
@@ -74,17 +73,15 @@ class GraphMonitor(Node):
         """Count a refused message; warn when :class:`DropLog` says a line is due."""
         line = self.drops.drop(topic, name, why)
         if line is not None:
-            print(f"peel graph: warning: {line}", file=sys.stderr, flush=True)
+            self.warn(line)
+
+    @staticmethod
+    def warn(line: str) -> None:
+        print(f"peel graph: warning: {line}", file=sys.stderr, flush=True)
 
     def on_trajectory(self, msg: Float64MultiArray) -> None:
-        try:
-            traj = codec.trajectory_from_msg(msg)
-        except PeelError as exc:
-            self.drop(topics.TRAJECTORY, "layout", f"does not decode: {exc}")
-            return
-        bad = trajectory_nonfinite(traj)
-        if bad is not None:
-            self.drop(topics.TRAJECTORY, f"'{bad}'", "holds non-finite values")
+        traj = inbox.take(self.drops, topics.TRAJECTORY, inbox.trajectory, msg, self.warn)
+        if traj is None:
             return
         self.trajectories.append(traj)
         for v in traj.meta.get("model_versions") or []:
@@ -104,19 +101,15 @@ class GraphMonitor(Node):
         self.versions.append(version)
 
     def on_model_info(self, msg: String) -> None:
-        try:
-            rec = ModelRecord.from_json(msg.data)
-        except PeelError as exc:
-            self.drop(topics.MODEL_INFO, "data", f"is not a model record: {exc}")
+        rec = inbox.take(self.drops, topics.MODEL_INFO, inbox.model_record, msg, self.warn)
+        if rec is None:
             return
         self.updates.add_record(rec)
         self.announced(rec.version)
 
     def on_model_update(self, msg: String) -> None:
-        try:
-            rep = UpdateReport.from_json(msg.data)
-        except PeelError as exc:
-            self.drop(topics.MODEL_UPDATE, "data", f"is not an update report: {exc}")
+        rep = inbox.take(self.drops, topics.MODEL_UPDATE, inbox.update_report, msg, self.warn)
+        if rep is None:
             return
         self.updates.add_report(rep)
         if rep.producer == self.updates.producer and rep.status == SWAPPED \
