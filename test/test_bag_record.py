@@ -158,3 +158,76 @@ def test_sigkilled_recorder_keeps_flushed_chunks(tmp_path, ros_domain) -> None:
     xs = arrays["/peel/wrench"]["fx_n"].tolist()
     assert len(xs) >= N // 2 and xs == [float(k) for k in range(int(xs[0]), N)]
     assert len(bagread.read_trajectories(bag)) == 1
+
+
+STAYING = textwrap.dedent("""
+    import sys, time
+    import rclpy
+    from geometry_msgs.msg import Vector3, Wrench, WrenchStamped
+    from rclpy.duration import Duration
+    from rclpy.node import Node
+    from peel_msgs_py import topics as T
+    rclpy.init()
+    node = Node("fake_sim")
+    pub = node.create_publisher(WrenchStamped, T.WRENCH, T.qos_profile(T.WRENCH))
+    end = time.monotonic() + 60  # discovery: until the recorder's subscription matched
+    while pub.get_subscription_count() < 1 and time.monotonic() < end:
+        time.sleep(0.05)
+    def send(x):
+        pub.publish(WrenchStamped(wrench=Wrench(force=Vector3(x=x))))
+        assert pub.wait_for_all_acked(Duration(seconds=60))
+    send(1.0)
+    print("first", flush=True)
+    if sys.stdin.readline().strip() == "last":  # the recorder has been told to stop
+        send(2.0)
+    print("leaving", flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+""")
+
+
+def _stay() -> subprocess.Popen[str]:
+    pub = subprocess.Popen([sys.executable, "-c", STAYING], stdin=subprocess.PIPE,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert pub.stdout.readline().strip() == "first", pub.stderr.read()
+    return pub
+
+
+def test_a_stopped_recorder_records_until_the_publishers_have_left(tmp_path, ros_domain) -> None:
+    """``--await-publishers``: a message sent after the stop signal, while its publisher is
+    still on the graph, is in the bag; the recorder ends once that publisher has left."""
+    bag = tmp_path / "rec"
+    rec = _start_recorder(bag, "--topics", "/peel/wrench", "--await-publishers", "120")
+    pub = _stay()
+    try:
+        rec.send_signal(signal.SIGINT)
+        pub.stdin.write("last\n")
+        pub.stdin.flush()
+        assert pub.stdout.readline().strip() == "leaving", pub.stderr.read()
+        _, err = rec.communicate(timeout=120)
+    finally:
+        for proc in (pub, rec):
+            if proc.poll() is None:
+                proc.kill()
+        pub.communicate(timeout=60)
+    assert rec.returncode == 0, err
+    assert _wrench_x(bag) == [1.0, 2.0]
+    assert "publishers still on the graph" not in err
+
+
+def test_a_publisher_that_stays_ends_the_wait_at_its_limit(tmp_path, ros_domain) -> None:
+    bag = tmp_path / "rec"
+    rec = _start_recorder(bag, "--topics", "/peel/wrench", "--await-publishers", "0.5")
+    pub = _stay()
+    try:
+        rec.send_signal(signal.SIGINT)
+        _, err = rec.communicate(timeout=120)
+    finally:
+        pub.stdin.write("stay\n")
+        pub.stdin.flush()
+        pub.communicate(timeout=60)
+        if rec.poll() is None:
+            rec.kill()
+    assert rec.returncode == 0, err
+    assert "peel record: warning: publishers still on the graph 0.5 s after the stop" in err
+    assert _wrench_x(bag) == [1.0]

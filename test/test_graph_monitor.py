@@ -76,3 +76,22 @@ def test_a_refused_or_foreign_report_announces_nothing(monitor: GraphMonitor) ->
                 UpdateReport("someone_else", 1, "swapped", version=5)):
         monitor.on_model_update(String(data=rep.to_json()))
     assert monitor.versions == [] and monitor.version is None
+
+
+def test_the_run_ends_only_once_a_swap_is_in_the_planners_record_too() -> None:
+    """The learner's ``swapped`` report carries no version: the launcher also waits for the
+    planner's record of that update (it may arrive after the report), else the summary's
+    model versions would miss the last one."""
+    from peel_bringup.graph import last_update_in
+    from peel_msgs_py.modelinfo import REFUSED, SWAPPED, UpdateWait
+
+    updates = UpdateWait("model_learner_node")
+    assert not last_update_in(updates, 1)
+    updates.add_report(UpdateReport("model_learner_node", 1, SWAPPED, path="/m1.safetensors"))
+    assert not last_update_in(updates, 1)
+    updates.add_record(ModelRecord(1, "ab" * 32, "/m1.safetensors", "someone_else", 1))
+    assert not last_update_in(updates, 1)  # not the learner's update
+    updates.add_record(ModelRecord(1, "ab" * 32, "/m1.safetensors", "model_learner_node", 1))
+    assert last_update_in(updates, 1)
+    updates.add_report(UpdateReport("model_learner_node", 2, REFUSED, "worse on held-out"))
+    assert last_update_in(updates, 2)  # nothing for the planner to record

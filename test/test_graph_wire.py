@@ -152,9 +152,12 @@ class Stranger:
     def close(self) -> None:
         import rclpy
 
+        if self._spin is None:
+            return
         self.resume_planner()
         self._stop.set()
         self._spin.join(timeout=10)
+        self._spin = None
         self.node.destroy_node()
         rclpy.try_shutdown()
 
@@ -196,6 +199,7 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         _wait(lambda: "clamped a /peel/cmd_vel" in sim_log.read_text(), 300,
               "the simulator to execute the stranger's command")
         stranger.resume_planner()
+        stranger.close()  # done: it leaves the graph before the recorder is stopped
         rc = proc.wait(timeout=400)
     finally:
         stranger.close()

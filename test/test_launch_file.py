@@ -84,7 +84,7 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         module, func = target.split(":")
         assert callable(getattr(importlib.import_module(module), func))  # ... and imports
         if name == "peel_recorder":
-            assert node.kwargs["arguments"] == ["--out", record]
+            assert node.kwargs["arguments"] == ["--out", record, "--await-publishers", "10"]
             continue
         assert name in registered_nodes()  # a node whose parameters are registered
         files = [p for p in node.kwargs["parameters"] if isinstance(p, str)]

@@ -17,7 +17,10 @@ The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' ow
 a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
 what its DDS reader already holds instead of losing the oldest. On a stop the recorder first
 takes every message its readers hold (:func:`drain`), so a message that reached the recorder's
-process before the stop is in the bag.
+process before the stop is in the bag. A launcher that stops the recorder after the nodes it
+records (``peel graph``) passes ``leave_wait_s``: the recorder then first takes messages until
+every publisher of a recorded topic has left the graph (:func:`await_leave`), so what a node sent
+before it exited is read before the drain, however loaded the machine.
 """
 
 from __future__ import annotations
@@ -126,10 +129,23 @@ def drain(node: RecorderNode, limit_s: float = DRAIN_LIMIT_S) -> int:
     return node.received - start
 
 
+def await_leave(node: RecorderNode, limit_s: float) -> bool:
+    """Take messages until no publisher of a recorded topic is left in the graph (or
+    ``limit_s``, which only a publisher that outlives the stop reaches); True when all left."""
+    t0 = time.monotonic()
+    while any(node.count_publishers(name) for name in node.specs):
+        if time.monotonic() - t0 >= limit_s:
+            return False
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return True
+
+
 def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
-           stop: Any) -> None:
-    """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``; a write
-    that failed ends it with the writer's :class:`~peel_bag.bag.BagWriteError`."""
+           stop: Any, leave_wait_s: float = 0.0) -> None:
+    """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``, then
+    take what is left (:func:`await_leave` for ``leave_wait_s`` when it is positive, then
+    :func:`drain`); a write that failed ends it with the writer's
+    :class:`~peel_bag.bag.BagWriteError`."""
     t0 = time.monotonic()
     rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = None
@@ -142,6 +158,10 @@ def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
                 break
             rclpy.spin_once(node, timeout_sec=0.05)
         if rclpy.ok() and writer.failure is None:
+            if leave_wait_s > 0 and not await_leave(node, leave_wait_s):
+                print(f"peel record: warning: publishers still on the graph {leave_wait_s:g} s "
+                      "after the stop; recording what they sent so far", file=sys.stderr,
+                      flush=True)
             drain(node)
     finally:
         if node is not None:

@@ -17,7 +17,8 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
   same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
 * the simulator (or the bridge) exits after the K tasks and the learner's last swap
   (``node.exit_when_done``); its exit, or any node's death, shuts the whole launch down (the
-  recorder closes its bag on the SIGINT that launch sends).
+  recorder, given the same SIGINT, records until the nodes' publishers have left, then closes
+  its bag).
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ def _setup(context, *args, **kwargs):
     if arg["record"]:
         actions.insert(0, Node(package="peel_bag", executable="peel_recorder",
                                name="peel_recorder", output="screen", sigterm_timeout="20",
-                               arguments=["--out", arg["record"]]))
+                               arguments=["--out", arg["record"], "--await-publishers", "10"]))
     # the simulator or the bridge finishing (or any node dying) ends the launch
     for name in nodes:
         actions.append(RegisterEventHandler(OnProcessExit(

@@ -64,6 +64,7 @@ from peel_msgs_py import discovery, held_signals
 from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.cliargs import ArgumentParser, int_arg, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import DomainTaken, PeelError
+from peel_msgs_py.modelinfo import SWAPPED, UpdateWait
 from peel_msgs_py.outputs import OutputDir, check_location, check_new_path
 from peel_msgs_py.params import config_dir, default_param_file, load_node_params, validate
 
@@ -74,6 +75,9 @@ NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
 #: The node that stands in for ``peel_sim_node`` with ``--plant nachi`` (docs/nachi.md).
 NACHI = "peel_nachi_bridge"
 RECORDER = "recorder"
+#: Longest time the stopped recorder records on, waiting for the stopped nodes' publishers to
+#: leave the graph (s); only a publisher that outlives the graph (not one of its nodes) needs it.
+LEAVE_WAIT_S = 10.0
 #: The live view's process (``--live``, :mod:`.live_node`), its default port (Foxglove's) and the
 #: only address it binds by default.
 LIVE = "peel_live"
@@ -444,7 +448,8 @@ def children_of(run: Run) -> list[Child]:
     children: list[Child] = []
     if run.bag is not None:
         children.append(Child(RECORDER, [sys.executable, "-m", "peel_bag.recorder_cli",
-                                         "--out", str(run.bag)], logs / "recorder.log"))
+                                         "--out", str(run.bag), "--await-publishers",
+                                         f"{LEAVE_WAIT_S:g}"], logs / "recorder.log"))
     if run.live is not None:
         children.append(Child(LIVE, live_command(run), logs / f"{LIVE}.log"))
     bridge = NACHI if run.plant == "nachi" else "peel_sim_node"
@@ -555,16 +560,15 @@ class Watch:
         self.recording_failed()
 
     def finished(self, mon: Any) -> bool:
-        """All tasks reported and the learner's own report on its last update in
-        (:meth:`~peel_msgs_py.modelinfo.UpdateWait.reported`; the planner's record of the swap
-        comes before it, and a learner stopped then could not say what became of it), or given
-        up on."""
+        """All tasks reported and the last update in (:func:`last_update_in`: the learner's own
+        report, since a learner stopped before it could not say what became of its update, and
+        for a swap the planner's record too), or given up on."""
         if len(self.results) < self.run.tasks:
             return False
         if self.finished_at is None:
             self.finished_at = time.monotonic()
         learner_alive = "model_learner_node" not in self.dead
-        arrived = mon.updates.reported(self.run.tasks) is not None
+        arrived = last_update_in(mon.updates, self.run.tasks)
         wait_s = self.run.gp["graph.final_model_wait_s"]
         if learner_alive and not arrived and time.monotonic() - self.finished_at < wait_s:
             return False
@@ -572,6 +576,17 @@ class Watch:
             print(f"peel graph: warning: the learner's update after task {self.run.tasks} did "
                   f"not arrive within {wait_s:g} s", file=sys.stderr)
         return True
+
+
+def last_update_in(updates: UpdateWait, task: int) -> bool:
+    """The learner's own report on its update after ``task`` has come and, when it says
+    swapped, the planner's record of that swap too (the learner's report does not carry the
+    planner's version, and the record may reach the launcher after it)."""
+    rep = updates.reported(task)
+    if rep is None:
+        return False
+    outcome = updates.outcome(task)
+    return rep.status != SWAPPED or (outcome is not None and outcome.version is not None)
 
 
 def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
@@ -601,8 +616,7 @@ def tear_down(children: list[Child], timeout_s: float) -> int | None:
         child.stop(timeout_s, signalled=True)
     code = None
     for child in children:
-        if child.name == RECORDER:
-            time.sleep(0.5)  # let the last messages reach the recorder
+        if child.name == RECORDER:  # it records until the nodes' publishers have left
             code = child.stop(timeout_s)
     return code
 
