@@ -62,6 +62,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               min=0.0),
     ParamSpec("cost.barrier.stop_weight", float, 10.0,
               "planning only: cost per sample of a predicted prewarning", min=0.0),
+    ParamSpec("cost.barrier.margin_ramp", bool, True,
+              "planning only: the margin m_a of Eq. M1 also ends the quadratic ramp at "
+              "f_prewarn_n - m_a (Eq. M2); false: it moves only the stop term"),
     ParamSpec("mppi.n_samples", int, 50, "N sampled sequences (Alg. 2)", min=1, max=1_000_000),
     ParamSpec("mppi.horizon", int, 5, "H horizon steps (Alg. 2)", min=1, max=1000),
     ParamSpec("mppi.lambda", float, 0.1, "temperature lambda (Eq. 38)", min=1e-9),
@@ -169,6 +172,7 @@ class BarrierConfig:
     weight: float = 8.0
     start_n: float = 15.0
     stop_weight: float = 10.0
+    margin_ramp: bool = True
     f_prewarn_n: float = 20.0
 
 
