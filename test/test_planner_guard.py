@@ -64,7 +64,7 @@ def test_the_shipped_planner_has_the_guard_on() -> None:
     for safety in (PlannerConfig().safety, load_planner_config().safety):
         assert (safety.margin.enabled, safety.margin.delta, safety.margin.init_n,
                 safety.null_sample, safety.check.enabled, safety.fallback) == (
-                    True, 0.1, 1.0, True, True, "least_force")
+                    True, 0.2, 0.5, True, True, "least_force")
     assert PlannerConfig().replace(**GUARDED).safety == PlannerConfig().safety
     off = PlannerConfig().replace(**UNGUARDED).safety
     assert not (off.margin.enabled or off.null_sample or off.check.enabled)
@@ -189,7 +189,7 @@ def test_correct_model_margin_shrinks_and_command_is_todays() -> None:
     guarded = peel(Planner(PlantModel(0.0), None, cfg))
     bare = peel(Planner(PlantModel(0.0), None, cfg.replace(**UNGUARDED)))
     g = guarded.meta["planner_guard"]
-    assert g["margin_max_n"][0] == pytest.approx(1.0) and g["margin_last_n"] == [0.0, 0.0]
+    assert g["margin_max_n"][0] == pytest.approx(0.5) and g["margin_last_n"] == [0.0, 0.0]
     assert g["fallbacks"] == 0 and g["commands_reduced"] == 0
     n = min(len(guarded), len(bare))
     np.testing.assert_allclose(guarded.u[:n], bare.u[:n], atol=0.1)
@@ -226,7 +226,7 @@ def test_control_loop_logs_the_fallback_and_exposes_the_margin() -> None:
     planned = [a for a in answers if a is not None]
     assert [a.u_mmps for a in planned] == [0.5, 0.5]
     assert "guard fallback" in planned[1].note and "sent 0.50 mm/s" in planned[1].note
-    assert loop.guard["fallbacks"] == 2 and loop.margin_n == pytest.approx(1.0)
+    assert loop.guard["fallbacks"] == 2 and loop.margin_n == pytest.approx(0.5)
     report = json.loads(loop.safety_report())
     assert report["task"] == 0 and report["fallbacks"] == 2 and report["plans"] == 2
     stop = loop.on_sample(Sample(600_000_000, 0, 0.3, 0.5, 21.0, 3.0))
@@ -249,7 +249,7 @@ def test_the_slowest_sequence_is_weighted_with_the_samples() -> None:
 def test_margin_widens_back_once_the_model_is_right() -> None:
     """Wrong by 2 N, then (model swapped) right: the margin rises to the 2 N error and falls
     back to 0 once the window (20 errors = 4 control periods) holds no more than
-    n - r = 1 of the wrong model's errors (r = ceil(21 x 0.9) = 19)."""
+    n - r = 3 of the wrong model's errors (r = ceil(21 x 0.8) = 17)."""
     planner = Planner(PlantModel(2.0), None, config())
     rows = [[0.0, 0.0, 0.0, 0.0, *true_forces(0.0, 0.0), np.nan]]
     margins = []
@@ -261,6 +261,6 @@ def test_margin_widens_back_once_the_model_is_right() -> None:
         for _ in range(5):
             t, q = rows[-1][0] + DT, rows[-1][1] + DT * u
             rows.append([t, q, u, u, *true_forces(q, u), np.nan])
-    assert margins[:2] == [1.0, 1.0] and margins[2:5] == pytest.approx([2.0] * 3)
+    assert margins[:2] == [0.5, 0.5] and margins[2:5] == pytest.approx([2.0] * 3)
     assert margins[8] == pytest.approx(0.0) and margins[9] == pytest.approx(0.0)
     assert all(b <= a + 1e-9 for a, b in itertools.pairwise(margins[4:]))

@@ -21,7 +21,8 @@ included) and its share, mean J (Eq. 3), T_cpl and peak force, each with a 95 % 
 rate with its 95 % Wilson interval, and the guard's counts (commands reduced, fallbacks) summed
 over the peels. ``latency``: ``plan()`` at (N, H) = (50, 5) of every arm on one simulator
 history, interleaved calls in the same run (median / p99 wall ms, median CPU ms, each arm's
-median over pytorch_mppi's); ``--latency-repeats 0`` leaves it out.
+median over pytorch_mppi's); ``--latency-repeats 0`` leaves it out. ``--per-peel`` adds each
+peel's outcome, peak, J and T_cpl (to compare arms run separately on the first peels).
 """
 
 from __future__ import annotations
@@ -192,6 +193,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                         runs.append(run_peel(env, policy, env_seed, params, cost))
                         bar.update(1)
                 arms[arm] = summary(runs, args.planner_seeds, args.over_n)
+                if args.per_peel:  # seed-major, task order within each planner seed
+                    arms[arm]["per_peel"] = [{"out": r["out"], "peak": round(r["peak"], 3),
+                                              "J": round(r["J"], 4), "t": r["t"]}
+                                             for r in runs]
         finally:
             env.close()
         out.append({"level": level, "sequence": sequence if level != "sim" else None,
@@ -233,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="planner parameter for every arm (repeatable)")
     ap.add_argument("--latency-repeats", type=nonnegative_int, default=50,
                     help="timed plan() calls per arm at (50, 5); 0: no latency (default 50)")
+    ap.add_argument("--per-peel", action="store_true",
+                    help="also list every peel's outcome, peak, J and T_cpl per arm")
     ap.add_argument("--progress", action="store_true", help="tqdm progress bar on stderr")
     args = ap.parse_args(argv)
     args.set = parse_sets(args.set)

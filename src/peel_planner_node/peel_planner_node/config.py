@@ -111,7 +111,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("safety.f_prewarn_n", float, 20.0, "safety prewarning on |F|, N (4.2)", min=1e-6),
     ParamSpec("safety.margin.enabled", bool, True,
               "tighten the force limit by the measured model error (Eq. M1-M2); false: m_a = 0"),
-    ParamSpec("safety.margin.delta", float, 0.1,
+    ParamSpec("safety.margin.delta", float, 0.2,
               "delta of Eq. M1: m_a = the conformal (1 - delta) upper quantile of e = measured - "
               "predicted |F_a| of the issued command, so P(e > m_a) <= delta (Eq. M2)",
               min=0.001, max=0.999),
@@ -121,7 +121,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("safety.margin.min_count", int, 10,
               "errors per axis before Eq. M1 replaces safety.margin.init_n", min=1,
               max=100_000),
-    ParamSpec("safety.margin.init_n", float, 1.0,
+    ParamSpec("safety.margin.init_n", float, 0.5,
               "margin before min_count errors exist (each task starts with it), N", min=0.0,
               max=20.0),
     ParamSpec("safety.margin.max_n", float, 6.0, "ceiling m_max of the margin, N (Eq. M1)",
@@ -252,8 +252,8 @@ class DynamicsConfig:
 #: the shipped values (config/peel_planner_node.yaml), as ``PlannerConfig.replace`` overrides.
 UNGUARDED: dict[str, Any] = {"safety.margin.enabled": False, "safety.margin.init_n": 0.0,
                              "safety.null_sample": False, "safety.check.enabled": False}
-GUARDED: dict[str, Any] = {"safety.margin.enabled": True, "safety.margin.delta": 0.1,
-                           "safety.margin.init_n": 1.0, "safety.null_sample": True,
+GUARDED: dict[str, Any] = {"safety.margin.enabled": True, "safety.margin.delta": 0.2,
+                           "safety.margin.init_n": 0.5, "safety.null_sample": True,
                            "safety.check.enabled": True, "safety.fallback": "least_force"}
 
 
@@ -262,10 +262,10 @@ class MarginConfig:
     """The force margin from the model's measured error (docs/planner.md, Eq. M1)."""
 
     enabled: bool = True
-    delta: float = 0.1
+    delta: float = 0.2
     window: int = 20
     min_count: int = 10
-    init_n: float = 1.0
+    init_n: float = 0.5
     max_n: float = 6.0
 
 
