@@ -42,15 +42,16 @@ def true_forces(q: torch.Tensor | float, v: torch.Tensor | float) -> tuple:
 
 
 class PlantModel:
-    """Planner dynamics of the test plant, F_RX under-predicted by ``offset`` N."""
+    """Planner dynamics of the test plant, F_RX under-predicted by ``offset`` N (or scaled by
+    ``scale``; ``fx``: a constant prediction)."""
 
-    def __init__(self, offset: float = 0.0, fx: float | None = None) -> None:
-        self.offset, self.fx = offset, fx
+    def __init__(self, offset: float = 0.0, fx: float | None = None, scale: float = 1.0) -> None:
+        self.offset, self.fx, self.scale = offset, fx, scale
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         q = float(history.q[-1]) + DT * torch.cumsum(v, dim=1)
         fx, fz = true_forces(q, v)
-        fx = torch.full_like(v, self.fx) if self.fx is not None else fx - self.offset
+        fx = torch.full_like(v, self.fx) if self.fx is not None else self.scale * fx - self.offset
         return torch.stack([q, fx, fz], dim=-1)
 
 
@@ -178,6 +179,22 @@ def test_wrong_model_trips_the_prewarning_without_the_guard_and_not_with_it(seed
     assert guarded.outcome == "done" and peak(guarded) < 20.0
     assert guarded.meta["planner_guard"]["margin_max_n"][0] == pytest.approx(5.5)
     assert guarded.meta["planner_guard"]["commands_reduced"] >= 1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_scaled_model_margin_follows_the_error_and_holds_the_limit(seed: int) -> None:
+    """A model predicting 70 % of F_RX: the error 0.3 F_RX grows along the stroke, the margin
+    follows it (Eq. M1 on the window), the unguarded planner trips the prewarning and the
+    guarded one, on the same seeds, finishes under 20 N."""
+    cfg = config(**{"mppi.seed": seed})
+    bare = peel(Planner(PlantModel(scale=0.7), None, cfg.replace(**UNGUARDED)))
+    planner = Planner(PlantModel(scale=0.7), None, cfg)
+    guarded = peel(planner)
+    assert bare.outcome == "safety_stop" and peak(bare) >= 20.0
+    assert guarded.outcome == "done" and peak(guarded) < 20.0
+    rx = [m[0] for m in planner.guard.margins]  # per plan: init_n, then Eq. M1
+    assert rx[:2] == [0.5, 0.5] and 0.5 < rx[2] < rx[-1] <= 0.3 * peak(guarded) + 1e-9
+    assert guarded.meta["planner_guard"]["margin_last_n"] == pytest.approx([rx[-1], 0.0], abs=1e-4)
 
 
 def test_correct_model_margin_shrinks_and_command_is_todays() -> None:
