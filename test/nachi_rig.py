@@ -5,19 +5,23 @@
   a bag with the project's :class:`~peel_bag.bag.BagWriter` (messages serialized with
   ``rclpy.serialization.serialize_message``), and, unless a real planner runs, commands the
   blade: at every control instant (every 5th sample of a task) it publishes ``/peel/cmd_vel``
-  with ``speed(task, t)`` (mm/s; None = stay silent), stamped with the sample it answers.
+  with ``speed(task, t)`` (mm/s; None = stay silent), stamped with the sample it answers;
+  with ``guard_reports`` it sends before each command the planner's guard report on
+  ``/peel/planner_safety`` (:class:`~peel_planner_node.guard.GuardStats`, as the planner node).
 * :func:`bridge_cmd` gives the command line that starts the bridge node as a real process (it
   inherits the test's domain and LOCALHOST discovery from the environment).
 """
 
 from __future__ import annotations
 
+import json
 import sys
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
@@ -30,6 +34,7 @@ from peel_bag.bag import BagWriter
 from peel_msgs_py import codec, topics
 from peel_msgs_py.modelinfo import ModelRecord
 from peel_msgs_py.units import mmps_to_mps
+from peel_planner_node.guard import GuardStats
 
 SLOT_S = 100.0
 TYPES = {topics.WRENCH: WrenchStamped, topics.TWIST: TwistStamped, topics.POSE: PoseStamped,
@@ -56,11 +61,14 @@ class Rig:
 
     def __init__(self, domain: str | int, bag: Path,
                  speed: Callable[[int, float], float | None] | None = None,
-                 model_version: int | None = 0) -> None:
+                 model_version: int | None = 0, guard_reports: bool = False) -> None:
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=int(domain))
         self.node = Node("peel_test_rig", context=self.ctx)
         self.speed = speed
+        #: task -> the guard reports sent on /peel/planner_safety (``guard_reports``), in order
+        self.reports: dict[int, list[dict]] | None = {} if guard_reports else None
+        self.guards: dict[int, GuardStats] = {}
         self.lock = threading.Lock()
         self.trajectories: list[Float64MultiArray] = []
         self.bag = BagWriter(bag).open()
@@ -75,6 +83,8 @@ class Rig:
                                                       qos(topics.MODEL_VERSION))
         self.pub_info = self.node.create_publisher(String, topics.MODEL_INFO,
                                                    qos(topics.MODEL_INFO))
+        self.pub_safety = self.node.create_publisher(String, topics.PLANNER_SAFETY,
+                                                     qos(topics.PLANNER_SAFETY))
         if model_version is not None:
             self.announce(model_version)
         self.executor = SingleThreadedExecutor(context=self.ctx)
@@ -114,10 +124,22 @@ class Rig:
         u = self.speed(task, t) if self.speed else None
         if u is None:
             return
+        if self.reports is not None:  # as the planner node: the guard report before the command
+            self._report(task, u)
         cmd = TwistStamped()
         cmd.header = msg.header
         cmd.twist.linear.x = float(mmps_to_mps(u))
         self.pub_cmd.publish(cmd)
+
+    def _report(self, task: int, u: float) -> None:
+        """The planner's guard report of one plan: margin 0.5 N on RX, every 3rd command a
+        fallback (GuardStats, the fields a real planner sends)."""
+        g = self.guards.setdefault(task, GuardStats())
+        g.record(np.array([0.5, 0.0]), u, u, g.plans % 3 == 2, False)
+        report = {"task": task, **g.as_dict()}
+        assert self.reports is not None
+        self.reports.setdefault(task, []).append(report)
+        self.pub_safety.publish(String(data=json.dumps(report)))
 
     def wait_trajectories(self, n: int, timeout_s: float) -> list[Float64MultiArray]:
         deadline = time.monotonic() + timeout_s

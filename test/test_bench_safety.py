@@ -7,7 +7,7 @@ import json
 import subprocess
 import sys
 
-from peel_experiments.bench_safety import summary
+from peel_experiments.bench_safety import summary, wilson
 
 
 def _bench(*args: str) -> subprocess.CompletedProcess[str]:
@@ -33,10 +33,21 @@ def test_summary_counts_stops_peaks_and_the_guard() -> None:
                                          "t_cpl_s": 4.0}
     assert s["by_planner_seed"]["1"]["over_18n"] == 1
     assert (s["commands_reduced"], s["fallbacks"]) == (4, 3)
+    assert s["prewarning_rate"] == {"rate": 0.25, "ci95_wilson": wilson(1, 4)}
+
+
+def test_wilson_interval_of_a_rate() -> None:
+    """The 95 % Wilson score interval: 0 of 300 -> [0, 1.26 %] (the rule of three's ~1 %),
+    5 of 100 -> [2.15 %, 11.2 %] (textbook values)."""
+    assert wilson(0, 300) == [0.0, 0.01264]
+    lo, hi = wilson(5, 100)
+    assert abs(lo - 0.02154) < 1e-4 and abs(hi - 0.11175) < 1e-4
+    assert wilson(0, 0) == [0.0, 1.0]
 
 
 def test_bench_safety_prints_every_level_and_arm_as_json() -> None:
-    res = _bench("--levels", "sim,1", "--sequences", "drift", "--tasks", "1", "--seed", "5")
+    res = _bench("--levels", "sim,1", "--sequences", "drift", "--tasks", "1", "--seed", "5",
+                 "--latency-repeats", "2")
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
     assert [(c["level"], c["sequence"]) for c in out["cells"]] == [("sim", None), ("1", "drift")]
@@ -46,6 +57,11 @@ def test_bench_safety_prints_every_level_and_arm_as_json() -> None:
             assert arm["peels"] == 1 and arm["prewarnings"] + arm["done"] <= 1
             assert set(arm["J"]) == {"mean", "ci95"} and arm["peak_n"]["max"] > 0.0
         assert cell["arms"]["pytorch_mppi"]["fallbacks"] == 0
+        assert cell["arms"]["peel"]["margin_mean_n"] > 0.0  # the shipped planner is guarded
+        assert cell["arms"]["peel_unguarded"]["margin_mean_n"] == 0.0
+    lat = out["latency"]["arms"]
+    assert set(lat) == {"peel", "peel_unguarded", "pytorch_mppi"} and out["latency"]["n"] == 50
+    assert lat["pytorch_mppi"]["ratio_to_pytorch_mppi"] == 1.0 and lat["peel"]["median_ms"] > 0
 
 
 def test_bench_safety_refuses_bad_arguments() -> None:

@@ -18,6 +18,7 @@ from graph_helpers import SMALL_MAML, node_env, read_bag_mcap_ros2
 
 from peel_bag import bagread
 from peel_msgs_py import topics
+from peel_planner_node.guard import GuardStats
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
@@ -93,6 +94,9 @@ def test_graph_runs_against_the_emulator(tmp_path: Path, ros_domain: str) -> Non
         [(t.outcome, t.meta["end_detail"]) for t in trajs]
     assert trajs[0].meta["model_version"] == 0
     assert trajs[1].meta["model_version"] >= 1  # the learner's update planned task 2
+    for traj in trajs:  # the real planner's guard report (/peel/planner_safety) in the meta
+        guard = traj.meta["planner_guard"]
+        assert set(guard) == set(GuardStats().as_dict()) and guard["plans"] >= 4, guard
 
     arrays = bagread.read_topics(tmp_path / "bag")
     assert set(arrays[topics.MODEL_VERSION]["version"]) >= {0, 1, 2}

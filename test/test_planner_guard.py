@@ -1,9 +1,12 @@
-"""The guard of the force limit under model error (docs/planner.md, Eq. M1-M3): the margin
-from the measured force error, the slowest sequence among the samples, the check of the
-command and its fallback, on a small deterministic plant whose model is wrong by a known
-amount."""
+"""The guard of the force limit under model error (docs/planner.md, Eq. M1-M4): the margin
+from the measured force error (a conformal quantile), the slowest sequence among the samples,
+the check of the command and its fallback, on a small deterministic plant whose model is wrong
+by a known amount."""
 
 from __future__ import annotations
+
+import itertools
+import json
 
 import numpy as np
 import pytest
@@ -11,10 +14,21 @@ import torch
 
 from peel_msgs_py.task import Sample
 from peel_msgs_py.trajectory import Trajectory
-from peel_planner_node.config import GUARDED, UNGUARDED, MarginConfig, PlannerConfig
+from peel_planner_node.config import (
+    GUARDED,
+    UNGUARDED,
+    MarginConfig,
+    PlannerConfig,
+    load_planner_config,
+)
 from peel_planner_node.control_loop import ControlLoop
 from peel_planner_node.cost import BarrierCritic, Cost
-from peel_planner_node.guard import ForceMargin, first_period_forces, largest_safe
+from peel_planner_node.guard import (
+    ForceMargin,
+    fallback_speed,
+    first_period_forces,
+    largest_safe,
+)
 from peel_planner_node.mppi import Planner
 
 torch.set_num_threads(1)
@@ -28,15 +42,16 @@ def true_forces(q: torch.Tensor | float, v: torch.Tensor | float) -> tuple:
 
 
 class PlantModel:
-    """Planner dynamics of the test plant, F_RX under-predicted by ``offset`` N."""
+    """Planner dynamics of the test plant, F_RX under-predicted by ``offset`` N (or scaled by
+    ``scale``; ``fx``: a constant prediction)."""
 
-    def __init__(self, offset: float = 0.0, fx: float | None = None) -> None:
-        self.offset, self.fx = offset, fx
+    def __init__(self, offset: float = 0.0, fx: float | None = None, scale: float = 1.0) -> None:
+        self.offset, self.fx, self.scale = offset, fx, scale
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         q = float(history.q[-1]) + DT * torch.cumsum(v, dim=1)
         fx, fz = true_forces(q, v)
-        fx = torch.full_like(v, self.fx) if self.fx is not None else fx - self.offset
+        fx = torch.full_like(v, self.fx) if self.fx is not None else self.scale * fx - self.offset
         return torch.stack([q, fx, fz], dim=-1)
 
 
@@ -45,10 +60,15 @@ def config(**flat) -> PlannerConfig:
     return PlannerConfig().replace(**{"mppi.dtype": "float64", **GUARDED, **flat})
 
 
-def test_the_shipped_planner_has_the_guard_off() -> None:
-    safety = PlannerConfig().safety
-    assert (safety.margin.kappa, safety.margin.init_n, safety.null_sample,
-            safety.check.enabled) == (0.0, 0.0, False, False)
+def test_the_shipped_planner_has_the_guard_on() -> None:
+    """config/peel_planner_node.yaml, the dataclass defaults and GUARDED agree."""
+    for safety in (PlannerConfig().safety, load_planner_config().safety):
+        assert (safety.margin.enabled, safety.margin.delta, safety.margin.init_n,
+                safety.null_sample, safety.check.enabled, safety.fallback) == (
+                    True, 0.2, 0.5, True, True, "least_force")
+    assert PlannerConfig().replace(**GUARDED).safety == PlannerConfig().safety
+    off = PlannerConfig().replace(**UNGUARDED).safety
+    assert not (off.margin.enabled or off.null_sample or off.check.enabled)
 
 
 def peel(planner: Planner, steps_per_plan: int = 5, t_max: float = 30.0) -> Trajectory:
@@ -71,18 +91,43 @@ def peak(traj: Trajectory) -> float:
 
 
 # ---------------------------------------------------------------- Eq. M1
-def test_margin_is_kappa_times_the_one_sided_rms_of_the_errors() -> None:
-    m = ForceMargin(MarginConfig(kappa=2.0, window=4, min_count=3, init_n=1.5, max_n=5.0))
+def test_margin_is_the_conformal_quantile_of_the_errors() -> None:
+    """Eq. M1: m = the r-th smallest error, r = ceil((n + 1)(1 - delta)), clipped to
+    [0, max_n]; init_n before min_count errors; max_n when r > n."""
+    m = ForceMargin(MarginConfig(delta=0.25, window=7, min_count=3, init_n=1.5, max_n=5.0))
     assert m.value.tolist() == [1.5, 1.5]  # fewer than min_count errors: init_n
-    # RX under-predicted by 1, 2 (and over-predicted once: ignored), RZ exact
+    # n = 3: r = ceil(4 * 0.75) = 3, the largest; RX errors 1, 2, -1; RZ exact
     m.observe(np.array([[11.0, 3.0], [12.0, 3.0], [9.0, 3.0]]),
               np.array([[10.0, 3.0], [10.0, 3.0], [10.0, 3.0]]))
-    want = 2.0 * np.sqrt((1.0 + 4.0 + 0.0) / 3.0)
-    np.testing.assert_allclose(m.value, [want, 0.0])
-    m.observe(np.array([[30.0, 3.0]]), np.array([[10.0, 3.0]]))
+    np.testing.assert_allclose(m.value, [2.0, 0.0])
+    # n = 7: r = ceil(8 * 0.75) = 6: errors 1, 2, -1, 0.5, 3, 4, 1.5 -> sorted 6th = 3
+    m.observe(np.array([[10.5, 3.0], [13.0, 3.0], [14.0, 3.0], [11.5, 3.0]]),
+              np.full((4, 2), [10.0, 3.0]))
+    np.testing.assert_allclose(m.value, [3.0, 0.0])
+    m.observe(np.array([[30.0, 3.0]] * 2), np.array([[10.0, 3.0]] * 2))
     assert m.value[0] == 5.0  # the ceiling
-    m.observe(np.full((4, 2), 10.0), np.full((4, 2), 10.0))  # right again: the window forgets
+    m.observe(np.full((7, 2), 10.0), np.full((7, 2), 11.0))  # over-predicted: no margin
     assert m.value.tolist() == [0.0, 0.0]
+    tight = ForceMargin(MarginConfig(delta=0.01, window=20, min_count=5, init_n=0.0, max_n=4.0))
+    tight.observe(np.zeros((20, 2)), np.zeros((20, 2)))
+    assert tight.value.tolist() == [4.0, 4.0]  # r = ceil(21 * 0.99) = 21 > n: max_n
+    off = ForceMargin(MarginConfig(enabled=False, init_n=2.0))
+    off.observe(np.full((9, 2), 15.0), np.full((9, 2), 10.0))
+    assert off.value.tolist() == [0.0, 0.0]
+
+
+def test_margin_bounds_the_exceedance_at_delta() -> None:
+    """The chance constraint of Eq. M2 on exchangeable errors: the next error exceeds m_a
+    with probability at most delta (measured over 4000 draws, delta = 0.1, n = 20: the
+    conformal bound's frequency is 1 - r/(n + 1) = 1/21 ~ 0.048)."""
+    rng = np.random.default_rng(3)
+    hits = 0
+    for _ in range(4000):
+        m = ForceMargin(MarginConfig(delta=0.1, window=20, min_count=10, max_n=100.0))
+        e = rng.normal(1.0, 2.0, size=21)
+        m.observe(e[:20, None].repeat(2, 1), np.zeros((20, 2)))
+        hits += int(e[20] > m.value[0])
+    assert 0.03 < hits / 4000 <= 0.1
 
 
 def test_check_takes_the_zero_crossing_at_or_below_u_star() -> None:
@@ -113,28 +158,43 @@ def test_tightened_barrier_is_the_barrier_at_zero_margin() -> None:
 # ---------------------------------------------------------------- closed loop
 @pytest.mark.parametrize("offset", [1.0, 2.0, 3.0])
 def test_margin_grows_with_the_models_measured_error(offset: float) -> None:
-    """F_RX under-predicted by a known offset: Eq. M1 measures exactly kappa * offset."""
-    planner = Planner(PlantModel(offset), None, config(**{"safety.margin.max_n": 10.0,
-                                                          "safety.margin.kappa": 2.0}))
+    """F_RX under-predicted by a known offset: every error is the offset, so Eq. M1's
+    quantile is exactly the offset (RZ, exact: 0)."""
+    planner = Planner(PlantModel(offset), None, config(**{"safety.margin.max_n": 10.0}))
     traj = peel(planner, t_max=5.0)
-    assert planner.margin.value[0] == pytest.approx(2.0 * offset, abs=1e-6)
+    assert planner.margin.value[0] == pytest.approx(offset, abs=1e-6)
     assert planner.margin.value[1] == pytest.approx(0.0, abs=1e-6)
-    assert traj.meta["planner_guard"]["margin_last_n"][0] == pytest.approx(2.0 * offset,
-                                                                           abs=1e-3)
+    assert traj.meta["planner_guard"]["margin_last_n"][0] == pytest.approx(offset, abs=1e-3)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_wrong_model_trips_the_prewarning_without_the_guard_and_not_with_it(seed: int) -> None:
     """A model 5.5 N under its plant: the planner without the guard runs into the 20 N
-    prewarning; with it (margin min(6, 1.5 x 5.5) = 6 N), on the same seeds, the peel finishes
-    under the limit."""
+    prewarning; with it (margin 5.5 N, the measured error), on the same seeds, the peel
+    finishes under the limit."""
     cfg = config(**{"mppi.seed": seed})
     bare = peel(Planner(PlantModel(5.5), None, cfg.replace(**UNGUARDED)))
     guarded = peel(Planner(PlantModel(5.5), None, cfg))
     assert bare.outcome == "safety_stop" and peak(bare) >= 20.0
     assert guarded.outcome == "done" and peak(guarded) < 20.0
-    assert guarded.meta["planner_guard"]["margin_max_n"][0] == pytest.approx(6.0)
+    assert guarded.meta["planner_guard"]["margin_max_n"][0] == pytest.approx(5.5)
     assert guarded.meta["planner_guard"]["commands_reduced"] >= 1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_scaled_model_margin_follows_the_error_and_holds_the_limit(seed: int) -> None:
+    """A model predicting 70 % of F_RX: the error 0.3 F_RX grows along the stroke, the margin
+    follows it (Eq. M1 on the window), the unguarded planner trips the prewarning and the
+    guarded one, on the same seeds, finishes under 20 N."""
+    cfg = config(**{"mppi.seed": seed})
+    bare = peel(Planner(PlantModel(scale=0.7), None, cfg.replace(**UNGUARDED)))
+    planner = Planner(PlantModel(scale=0.7), None, cfg)
+    guarded = peel(planner)
+    assert bare.outcome == "safety_stop" and peak(bare) >= 20.0
+    assert guarded.outcome == "done" and peak(guarded) < 20.0
+    rx = [m[0] for m in planner.guard.margins]  # per plan: init_n, then Eq. M1
+    assert rx[:2] == [0.5, 0.5] and 0.5 < rx[2] < rx[-1] <= 0.3 * peak(guarded) + 1e-9
+    assert guarded.meta["planner_guard"]["margin_last_n"] == pytest.approx([rx[-1], 0.0], abs=1e-4)
 
 
 def test_correct_model_margin_shrinks_and_command_is_todays() -> None:
@@ -146,7 +206,7 @@ def test_correct_model_margin_shrinks_and_command_is_todays() -> None:
     guarded = peel(Planner(PlantModel(0.0), None, cfg))
     bare = peel(Planner(PlantModel(0.0), None, cfg.replace(**UNGUARDED)))
     g = guarded.meta["planner_guard"]
-    assert g["margin_max_n"][0] == pytest.approx(1.0) and g["margin_last_n"] == [0.0, 0.0]
+    assert g["margin_max_n"][0] == pytest.approx(0.5) and g["margin_last_n"] == [0.0, 0.0]
     assert g["fallbacks"] == 0 and g["commands_reduced"] == 0
     n = min(len(guarded), len(bare))
     np.testing.assert_allclose(guarded.u[:n], bare.u[:n], atol=0.1)
@@ -155,27 +215,38 @@ def test_correct_model_margin_shrinks_and_command_is_todays() -> None:
 
 
 def test_every_sample_unsafe_sends_the_fallback_and_counts_it() -> None:
-    """A model that predicts 25 N whatever the speed: no sample is safe, the fallback goes out
-    instead of the weighted mean, and the trajectory meta counts it."""
-    planner = Planner(PlantModel(fx=25.0), None, config(**{"safety.fallback_mmps": 0.0}))
-    traj = peel(planner, t_max=1.0)
-    assert np.all(traj.u[:-1] == 0.0)
+    """A model that predicts 25 N whatever the speed: no sample is safe, the fallback (Eq. M4:
+    the least-force candidate, here u_min since all are equal) goes out instead of the weighted
+    mean, the blade keeps moving, and the trajectory meta counts it."""
+    planner = Planner(PlantModel(fx=25.0), None, config())
+    traj = peel(planner, t_max=2.0)
+    assert np.all(traj.u[1:] == 0.5) and traj.q[-1] == pytest.approx(0.5 * traj.t[-1])
     assert planner.last["fallback"] and planner.last["u_star"] >= 0.5
     g = traj.meta["planner_guard"]
-    assert g["fallbacks"] == g["plans"] == g["all_samples_unsafe"] >= 2
-    assert float(planner.U.max()) == pytest.approx(0.5)  # the next plan starts from u_min
+    assert g["fallbacks"] == g["plans"] == g["all_samples_unsafe"] >= 4
+    assert float(planner.U.max()) == pytest.approx(0.5)  # the next plan starts from it
+
+
+def test_fallback_is_the_least_force_candidate_or_u_min() -> None:
+    c = np.array([0.5, 1.5, 2.5, 3.5])
+    g = np.array([2.0, 1.0, 1.0, 3.0])
+    assert fallback_speed(c, g, "least_force") == 1.5  # the lowest g, the slowest of equals
+    assert fallback_speed(c, g, "u_min") == 0.5
 
 
 def test_control_loop_logs_the_fallback_and_exposes_the_margin() -> None:
     cfg = config()
     loop = ControlLoop(cfg, PlantModel(fx=25.0), seed=0)
-    answers = [loop.on_sample(Sample(k * 100_000_000, 0, 0.0, 0.0, 4.0, 3.0))
+    assert loop.safety_report() is None
+    answers = [loop.on_sample(Sample(k * 100_000_000, 0, 0.05 * k, 0.5, 4.0, 3.0))
                for k in range(6)]
     planned = [a for a in answers if a is not None]
-    assert [a.u_mmps for a in planned] == [0.0, 0.0]
-    assert "guard fallback" in planned[1].note and "sent 0.00 mm/s" in planned[1].note
-    assert loop.guard["fallbacks"] == 2 and loop.margin_n == pytest.approx(1.0)
-    stop = loop.on_sample(Sample(600_000_000, 0, 0.0, 0.0, 21.0, 3.0))
+    assert [a.u_mmps for a in planned] == [0.5, 0.5]
+    assert "guard fallback" in planned[1].note and "sent 0.50 mm/s" in planned[1].note
+    assert loop.guard["fallbacks"] == 2 and loop.margin_n == pytest.approx(0.5)
+    report = json.loads(loop.safety_report())
+    assert report["task"] == 0 and report["fallbacks"] == 2 and report["plans"] == 2
+    stop = loop.on_sample(Sample(600_000_000, 0, 0.3, 0.5, 21.0, 3.0))
     assert stop is not None and "guard: 0 of 2 commands reduced" in stop.note
     assert "2 fallbacks" in stop.note
 
@@ -193,9 +264,10 @@ def test_the_slowest_sequence_is_weighted_with_the_samples() -> None:
 
 
 def test_margin_widens_back_once_the_model_is_right() -> None:
-    """Wrong by 2 N, then (model swapped) right: the margin rises to 2 x 2 N and falls back to
-    0 once the window (20 errors = 4 control periods) holds only the right model's errors."""
-    planner = Planner(PlantModel(2.0), None, config(**{"safety.margin.kappa": 2.0}))
+    """Wrong by 2 N, then (model swapped) right: the margin rises to the 2 N error and falls
+    back to 0 once the window (20 errors = 4 control periods) holds no more than
+    n - r = 3 of the wrong model's errors (r = ceil(21 x 0.8) = 17)."""
+    planner = Planner(PlantModel(2.0), None, config())
     rows = [[0.0, 0.0, 0.0, 0.0, *true_forces(0.0, 0.0), np.nan]]
     margins = []
     for k in range(10):
@@ -206,5 +278,6 @@ def test_margin_widens_back_once_the_model_is_right() -> None:
         for _ in range(5):
             t, q = rows[-1][0] + DT, rows[-1][1] + DT * u
             rows.append([t, q, u, u, *true_forces(q, u), np.nan])
-    assert margins[1:5] == pytest.approx([4.0] * 4)
-    assert margins[5] < 4.0 and margins[9] == pytest.approx(0.0)
+    assert margins[:2] == [0.5, 0.5] and margins[2:5] == pytest.approx([2.0] * 3)
+    assert margins[8] == pytest.approx(0.0) and margins[9] == pytest.approx(0.0)
+    assert all(b <= a + 1e-9 for a, b in itertools.pairwise(margins[4:]))

@@ -5,10 +5,11 @@ Each bridge runs as a real process on its own ROS domain; a rig in the test proc
 (nachi_rig.Rig) stands in for the planner and the learner: it announces model v0 on
 ``/peel/model_version`` + ``/peel/model_info``, answers every control instant on
 ``/peel/cmd_vel``, records every topic to a bag, and after each trajectory announces the
-learner's update of that task (v(k) after task k). Checked on the bag: the topics, their stamps
+learner's update of that task (v(k) after task k); before each command it sends the planner's
+guard report (``/peel/planner_safety``). Checked on the bag: the topics, their stamps
 (task k at k * node.task_slot_s + the plant's t, frame peel_task_<k>, /clock with them), the
-trajectory message and model following (task 2 starts only after the update of task 1 and
-records it as its model).
+trajectory message, model following (task 2 starts only after the update of task 1 and
+records it as its model) and the same ``planner_guard`` safety fields in both bridges' meta.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from peel_bridge.plant_node import PlantTopics
 from peel_msgs_py import topics
 from peel_nachi_emulator.emulator import ControllerEmulator, EmulatorOptions
 from peel_nachi_emulator.robot import Robot
+from peel_planner_node.guard import GuardStats
 from peel_sim_node.config import load_sim_config
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
@@ -97,7 +99,7 @@ def test_both_bridges_run_on_the_shared_core() -> None:
 def test_topics_stamps_trajectory_and_model_following(bridge: tuple[str, list[str]],
                                                       tmp_path: Path, ros_domain: str) -> None:
     name, cmd = bridge
-    rig = Rig(ros_domain, tmp_path / "bag", speed=lambda task, t: 4.0)
+    rig = Rig(ros_domain, tmp_path / "bag", speed=lambda task, t: 4.0, guard_reports=True)
     stop = follow_updates(rig)
     try:
         out = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=300)
@@ -116,6 +118,15 @@ def test_topics_stamps_trajectory_and_model_following(bridge: tuple[str, list[st
     assert trajs[1].meta["model_versions"] == [0, 1]
     assert all(t.meta["cmd_limits_mmps"] == [0.0, 20.0] for t in trajs)
     assert all(t.q[-1] >= Q_TER_MM for t in trajs)
+    # the planner's guard: the same safety fields on both bridges, the task's last report
+    assert rig.reports is not None
+    for k, traj in enumerate(trajs):
+        guard = traj.meta["planner_guard"]
+        assert set(guard) == set(GuardStats().as_dict()), name
+        sent = rig.reports[k]
+        assert {"task": k, **guard} in sent  # one the planner sent for this task, the last
+        assert guard["plans"] >= len(sent) - 1 >= 1  # or (a report racing the end) the one before
+        assert guard["fallbacks"] == guard["plans"] // 3
 
     arrays = bagread.read_topics(tmp_path / "bag")
     w, tw, pose = arrays[topics.WRENCH], arrays[topics.TWIST], arrays[topics.POSE]

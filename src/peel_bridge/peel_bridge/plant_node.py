@@ -13,13 +13,17 @@ per-sample publishing.
   of every model it plans with) and the learner's ``/peel/model_update`` reports, collected in an
   :class:`~peel_msgs_py.modelinfo.UpdateWait` that the task loop asks between tasks
   (:meth:`PlantTopics.readiness`), and the version each task started with
-  (:meth:`PlantTopics.task_started`, :meth:`PlantTopics.model_meta`).
+  (:meth:`PlantTopics.task_started`, :meth:`PlantTopics.model_meta`);
+* the planner's guard of the force limit, ``/peel/planner_safety`` (JSON after each plan): the
+  last report of each task becomes its trajectory's ``planner_guard``, so both bridges carry the
+  same safety fields (:meth:`PlantTopics.graph_meta` = model following + ``planner_guard``).
 
 A message that does not parse is dropped, counted and logged (:class:`~peel_msgs_py.wire.DropLog`).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from typing import Any
 
@@ -59,6 +63,10 @@ class PlantTopics:
                                  to_profile(topics.topic(topics.MODEL_INFO).sub_qos))
         node.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
                                  to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
+        node.create_subscription(String, topics.PLANNER_SAFETY, self.on_planner_safety,
+                                 qos(topics.PLANNER_SAFETY, subscriber=True))
+        #: task index -> the planner's last guard report of that task (``/peel/planner_safety``)
+        self.guard_reports: dict[int, dict[str, Any]] = {}
         self.updates = UpdateWait(learner_node)
         self.drops = DropLog()
         self.model_version: int | None = None
@@ -81,6 +89,19 @@ class PlantTopics:
         if rep is not None:
             self.updates.add_report(rep)
 
+    def on_planner_safety(self, msg: String) -> None:
+        """The planner's guard after a plan: kept as the latest of its task."""
+        try:
+            report = json.loads(msg.data)
+            task = int(report.pop("task"))
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
+            self.log_drop(self.drops.drop(topics.PLANNER_SAFETY, "data",
+                                          f"is not a guard report: {exc}"))
+            return
+        self.guard_reports[task] = report
+        for old in [k for k in self.guard_reports if k < task - 10]:
+            del self.guard_reports[old]
+
     def readiness(self) -> Readiness:
         """What the task loop needs to see of the graph: model, readers, the learner's updates."""
         state = min(pub.get_subscription_count()
@@ -97,6 +118,12 @@ class PlantTopics:
         every version seen so far."""
         return {"model_version": self.version_at_start.get(index),
                 "model_versions": sorted(self.versions_seen)}
+
+    def graph_meta(self, index: int) -> dict[str, Any]:
+        """The trajectory meta a bridge takes from the graph for task ``index``: model following
+        (:meth:`model_meta`) and ``planner_guard``, the planner's last guard report of the task
+        (None when none arrived)."""
+        return {**self.model_meta(index), "planner_guard": self.guard_reports.get(index)}
 
     def log_drop(self, line: str | None) -> None:
         if line is not None:

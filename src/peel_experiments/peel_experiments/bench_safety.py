@@ -3,9 +3,10 @@
 Every arm plans with the same model (the shipped checkpoint, not updated: the guard is a
 planner property) and the same cost, N and H on the same peels:
 
-* ``peel``: the planner with the guard of the force limit on (Eq. M1-M3, the values of
-  docs/planner.md; the shipped defaults have it off);
-* ``peel_unguarded``: the same with the guard off (no margin, no slowest sequence, no check);
+* ``peel``: the shipped planner (config/peel_planner_node.yaml), with the guard of the force
+  limit (Eq. M1-M4, docs/planner.md);
+* ``peel_unguarded``: the same with the guard off (no margin, no slowest sequence, no check, no
+  fallback): the planner before the guard;
 * ``pytorch_mppi``: pytorch_mppi 0.9.1 over the same model and critics (``bench_planner``).
 
 Levels: ``sim`` (the simulator, task k with env seed ``seed * 1000 + k``) and plant levels 0-3
@@ -16,8 +17,12 @@ planner seed in ``--planner-seeds`` (peel's ``mppi.seed``, pytorch_mppi's torch 
 Prints one JSON object: per level (and sequence) and arm, ``peels``, ``prewarnings`` (outcome
 ``safety_stop``), ``over_18n`` (peels whose largest |F_RX| or |F_RZ| reached 18 N, stops
 included) and its share, mean J (Eq. 3), T_cpl and peak force, each with a 95 % interval
-(mean +- 1.96 standard errors over the peels) and the per-planner-seed means, and the guard's
-counts (commands reduced, fallbacks) summed over the peels.
+(mean +- 1.96 standard errors over the peels) and the per-planner-seed means, the prewarning
+rate with its 95 % Wilson interval, and the guard's counts (commands reduced, fallbacks) summed
+over the peels. ``latency``: ``plan()`` at (N, H) = (50, 5) of every arm on one simulator
+history, interleaved calls in the same run (median / p99 wall ms, median CPU ms, each arm's
+median over pytorch_mppi's); ``--latency-repeats 0`` leaves it out. ``--per-peel`` adds each
+peel's outcome, peak, J and T_cpl (to compare arms run separately on the first peels).
 """
 
 from __future__ import annotations
@@ -33,12 +38,12 @@ from tqdm import tqdm
 
 from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import PeelError
-from peel_planner_node.config import GUARDED, UNGUARDED, PlannerConfig, load_planner_config
+from peel_planner_node.config import UNGUARDED, PlannerConfig, load_planner_config
 from peel_planner_node.cost import Cost, episode_cost_terms
 from peel_planner_node.dynamics import learned_dynamics
 from peel_planner_node.mppi import Planner
 
-from .bench_planner import TorchMppiPolicy, load_model, parse_sets, peak_force
+from .bench_planner import TorchMppiPolicy, load_model, parse_sets, peak_force, timing
 
 ARMS: tuple[str, ...] = ("peel", "peel_unguarded", "pytorch_mppi")
 
@@ -47,7 +52,7 @@ def make_policy(arm: str, pred: Any, base: PlannerConfig, pseed: int) -> Any:
     """The planner of one arm with planner seed ``pseed``."""
     if arm == "pytorch_mppi":
         return TorchMppiPolicy(pred, Cost(base.cost), base, seed=pseed)
-    extra = UNGUARDED if arm == "peel_unguarded" else GUARDED
+    extra = UNGUARDED if arm == "peel_unguarded" else {}
     cfg = base.replace(**{**extra, "mppi.seed": pseed})
     return Planner(learned_dynamics(pred, cfg.dynamics), Cost(cfg.cost), cfg)
 
@@ -89,14 +94,27 @@ def interval(x: list[float]) -> dict[str, float]:
                                                         round(float(a.mean() + half), 4)]}
 
 
+def wilson(k: int, n: int) -> list[float]:
+    """95 % Wilson score interval of a rate k / n (z = 1.96); [0, 1] for n = 0."""
+    if n == 0:
+        return [0.0, 1.0]
+    z, p = 1.96, k / n
+    mid = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [round(float(max(0.0, mid - half)), 5), round(float(min(1.0, mid + half)), 5)]
+
+
 def summary(runs: list[dict[str, Any]], pseeds: list[int], over_n: float) -> dict[str, Any]:
     """The counts and intervals of one (level, sequence, arm) cell; runs are seed-major."""
     k = len(runs) // len(pseeds)
     by_seed = [runs[i * k:(i + 1) * k] for i in range(len(pseeds))]
     over = [r["peak"] >= over_n for r in runs]
+    stops = sum(r["out"] == "safety_stop" for r in runs)
     return {
         "peels": len(runs),
-        "prewarnings": sum(r["out"] == "safety_stop" for r in runs),
+        "prewarnings": stops,
+        "prewarning_rate": {"rate": round(stops / len(runs), 5),
+                            "ci95_wilson": wilson(stops, len(runs))},
         "over_18n": int(sum(over)), "share_over_18n": round(float(np.mean(over)), 4),
         "done": sum(r["out"] == "done" for r in runs),
         "J": interval([r["J"] for r in runs]), "t_cpl_s": interval([r["t"] for r in runs]),
@@ -112,6 +130,41 @@ def summary(runs: list[dict[str, Any]], pseeds: list[int], over_n: float) -> dic
         "fallbacks": int(sum(r["fallbacks"] for r in runs)),
         "margin_mean_n": round(float(np.mean([r["margin_mean"] for r in runs])), 4),
     }
+
+
+def latency(arms: list[str], pred: Any, base: PlannerConfig, repeats: int,
+            sim_cfg: Any) -> dict[str, Any]:
+    """``plan()`` at (50, 5) of every arm on one simulator history (task seed 1000 after 2 s at
+    2 mm/s), in rounds of interleaved calls so that machine load hits every arm alike."""
+    from peel_sim_node.env import PeelEnv
+
+    cfg = base.replace(**{"mppi.n_samples": 50, "mppi.horizon": 5})
+    env = PeelEnv(sim_cfg, seed=0)
+    try:
+        env.reset(seed=1000)
+        for _ in range(20):
+            env.step(2.0)
+        hist = env.history
+    finally:
+        env.close()
+    pols = {arm: make_policy(arm, pred, cfg, 0) for arm in arms}
+    wall: dict[str, list[float]] = {a: [] for a in arms}
+    cpu: dict[str, list[float]] = {a: [] for a in arms}
+    for _ in range(repeats):
+        for arm, pol in pols.items():
+            med, _, c = timing(pol, hist, 1, warmup=1 if not wall[arm] else 0)
+            wall[arm].append(med)
+            cpu[arm].append(c)
+    out = {a: {"median_ms": round(float(np.median(wall[a])), 3),
+               "p99_ms": round(float(np.percentile(wall[a], 99)), 3),
+               "cpu_median_ms": round(float(np.median(cpu[a])), 3)} for a in arms}
+    if "pytorch_mppi" in out:
+        ref = out["pytorch_mppi"]
+        for a in arms:
+            out[a]["ratio_to_pytorch_mppi"] = round(out[a]["median_ms"] / ref["median_ms"], 4)
+            out[a]["cpu_ratio_to_pytorch_mppi"] = round(
+                out[a]["cpu_median_ms"] / ref["cpu_median_ms"], 4)
+    return {"n": 50, "h": 5, "repeats": repeats, "arms": out}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -140,15 +193,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                         runs.append(run_peel(env, policy, env_seed, params, cost))
                         bar.update(1)
                 arms[arm] = summary(runs, args.planner_seeds, args.over_n)
+                if args.per_peel:  # seed-major, task order within each planner seed
+                    arms[arm]["per_peel"] = [{"out": r["out"], "peak": round(r["peak"], 3),
+                                              "J": round(r["J"], 4), "t": r["t"]}
+                                             for r in runs]
         finally:
             env.close()
         out.append({"level": level, "sequence": sequence if level != "sim" else None,
                     "arms": arms})
     bar.close()
+    lat = (latency(args.arms, pred, base, args.latency_repeats, sim_cfg)
+           if args.latency_repeats else None)
     return {"benchmark": "safety", "model": model_info, "seed": args.seed,
             "tasks": args.tasks, "planner_seeds": args.planner_seeds, "over_n": args.over_n,
             "n": base.mppi.n_samples, "h": base.mppi.horizon, "base_overrides": args.set,
-            "cells": out}
+            "cells": out, "latency": lat}
 
 
 def _levels(text: str) -> list[str]:
@@ -177,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--over-n", type=float, default=18.0, help="peak force counted, N (18)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="planner parameter for every arm (repeatable)")
+    ap.add_argument("--latency-repeats", type=nonnegative_int, default=50,
+                    help="timed plan() calls per arm at (50, 5); 0: no latency (default 50)")
+    ap.add_argument("--per-peel", action="store_true",
+                    help="also list every peel's outcome, peak, J and T_cpl per arm")
     ap.add_argument("--progress", action="store_true", help="tqdm progress bar on stderr")
     args = ap.parse_args(argv)
     args.set = parse_sets(args.set)

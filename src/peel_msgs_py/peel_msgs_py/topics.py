@@ -87,6 +87,7 @@ TRAJECTORY = "/peel/trajectory"
 MODEL_VERSION = "/peel/model_version"
 MODEL_INFO = "/peel/model_info"
 MODEL_UPDATE = "/peel/model_update"
+PLANNER_SAFETY = "/peel/planner_safety"
 CLOCK = "/clock"
 DIAGNOSTICS = "/diagnostics"
 
@@ -143,6 +144,13 @@ _TABLE: tuple[TopicSpec, ...] = (
         "what became of the learner's update after each task, JSON: producer, task, status "
         "(swapped / refused / failed / skipped), reason, sha256, path "
         "(peel_msgs_py.modelinfo)", "-",
+    ),
+    TopicSpec(
+        PLANNER_SAFETY, "std_msgs/msg/String", CONTROL_RATE_HZ, STREAM_QOS,
+        "peel_planner_node",
+        "the guard of the force limit after each plan, JSON: task and the task's counts "
+        "(plans, commands_reduced, fallbacks, all_samples_unsafe, margin_*_n per axis); the "
+        "plant bridges put the last one of each task into its trajectory's meta", "N, mm/s",
     ),
     TopicSpec(
         CLOCK, "rosgraph_msgs/msg/Clock", STATE_RATE_HZ, CLOCK_QOS, "peel_sim_node",

@@ -120,7 +120,7 @@ class NachiBridgeNode(NamedRefusals, Node):
             assert traj is not None
             traj.meta.update({
                 "task_index": result.index, "t0_ros_s": result.index * self.cfg.node.task_slot_s,
-                **self.plant.model_meta(result.index),
+                **self.plant.graph_meta(result.index),
                 "cmd_limits_mmps": [self.bridge.limits.u_min_mmps, self.bridge.limits.u_max_mmps]})
             self.plant.publish_trajectory(traj, result.index + 1, result.reason)
         elif result.started:

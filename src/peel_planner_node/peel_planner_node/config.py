@@ -18,7 +18,7 @@ Sections:
   ``native_loop``): speed only, never the algorithm;
 * ``safety.*``: the end-of-task conditions (section 4.2) and the guard of the force limit
   under model error (``safety.margin.*``, ``safety.null_sample``, ``safety.check.*``,
-  ``safety.fallback_mmps``; docs/planner.md, Eq. M1-M3).
+  ``safety.fallback``; docs/planner.md, Eq. M1-M4).
 
 Time base (docs/CONTRACT.md, section 4.2): the forward model steps ``dt_s`` = 0.1 s; one MPPI
 horizon step holds the sampled velocity ``v_t = u_t + eps_t`` for ``steps_per_horizon_step``
@@ -62,6 +62,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               min=0.0),
     ParamSpec("cost.barrier.stop_weight", float, 10.0,
               "planning only: cost per sample of a predicted prewarning", min=0.0),
+    ParamSpec("cost.barrier.margin_ramp", bool, True,
+              "planning only: the margin m_a of Eq. M1 also ends the quadratic ramp at "
+              "f_prewarn_n - m_a (Eq. M2); false: it moves only the stop term"),
     ParamSpec("mppi.n_samples", int, 50, "N sampled sequences (Alg. 2)", min=1, max=1_000_000),
     ParamSpec("mppi.horizon", int, 5, "H horizon steps (Alg. 2)", min=1, max=1000),
     ParamSpec("mppi.lambda", float, 0.1, "temperature lambda (Eq. 38)", min=1e-9),
@@ -106,31 +109,34 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("dynamics.fused.native_loop", bool, True,
               "run the model-step loop in C++ when it is built"),
     ParamSpec("safety.f_prewarn_n", float, 20.0, "safety prewarning on |F|, N (4.2)", min=1e-6),
-    ParamSpec("safety.margin.kappa", float, 0.0,
-              "k of the force margin m_a = min(m_max, k sqrt(mean max(e,0)^2)), e = measured - "
-              "predicted |F_a| of the issued command (docs/planner.md, Eq. M1); 0: no margin",
-              min=0.0, max=100.0),
+    ParamSpec("safety.margin.enabled", bool, True,
+              "tighten the force limit by the measured model error (Eq. M1-M2); false: m_a = 0"),
+    ParamSpec("safety.margin.delta", float, 0.2,
+              "delta of Eq. M1: m_a = the conformal (1 - delta) upper quantile of e = measured - "
+              "predicted |F_a| of the issued command, so P(e > m_a) <= delta (Eq. M2)",
+              min=0.001, max=0.999),
     ParamSpec("safety.margin.window", int, 20,
               "model steps of force error per axis in the margin's window (Eq. M1)", min=1,
               max=100_000),
-    ParamSpec("safety.margin.min_count", int, 5,
+    ParamSpec("safety.margin.min_count", int, 10,
               "errors per axis before Eq. M1 replaces safety.margin.init_n", min=1,
               max=100_000),
-    ParamSpec("safety.margin.init_n", float, 0.0,
+    ParamSpec("safety.margin.init_n", float, 0.5,
               "margin before min_count errors exist (each task starts with it), N", min=0.0,
               max=20.0),
     ParamSpec("safety.margin.max_n", float, 6.0, "ceiling m_max of the margin, N (Eq. M1)",
               min=0.0, max=20.0),
-    ParamSpec("safety.null_sample", bool, False,
+    ParamSpec("safety.null_sample", bool, True,
               "add the slowest sequence (u_min over the horizon) to the N samples (Eq. 31)"),
-    ParamSpec("safety.check.enabled", bool, False,
+    ParamSpec("safety.check.enabled", bool, True,
               "check the command against the model before it goes out (Eq. M3)"),
     ParamSpec("safety.check.candidates", int, 8,
               "speeds u_min..max v_0 rolled out with the samples for the check (Eq. M3)",
               min=2, max=1000),
-    ParamSpec("safety.fallback_mmps", float, 0.0,
-              "command when even u_min is predicted over the tightened limit, mm/s (Eq. M3)",
-              min=0.0, max=100.0),
+    ParamSpec("safety.fallback", str, "least_force",
+              "command when even u_min is predicted over the tightened limit (Eq. M4): the "
+              "candidate of least predicted force, or u_min; both keep the blade moving",
+              choices=("least_force", "u_min")),
 )
 
 
@@ -166,6 +172,7 @@ class BarrierConfig:
     weight: float = 8.0
     start_n: float = 15.0
     stop_weight: float = 10.0
+    margin_ramp: bool = True
     f_prewarn_n: float = 20.0
 
 
@@ -241,22 +248,24 @@ class DynamicsConfig:
     fused: FusedConfig = FusedConfig()
 
 
-#: The guard of the force limit (Eq. M1-M3) switched off (the shipped defaults) and on with
-#: the values of docs/planner.md, as ``PlannerConfig.replace`` overrides.
-UNGUARDED: dict[str, Any] = {"safety.margin.kappa": 0.0, "safety.margin.init_n": 0.0,
+#: The guard of the force limit (Eq. M1-M4) switched off (the planner without it) and on with
+#: the shipped values (config/peel_planner_node.yaml), as ``PlannerConfig.replace`` overrides.
+UNGUARDED: dict[str, Any] = {"safety.margin.enabled": False, "safety.margin.init_n": 0.0,
                              "safety.null_sample": False, "safety.check.enabled": False}
-GUARDED: dict[str, Any] = {"safety.margin.kappa": 1.5, "safety.margin.init_n": 1.0,
-                           "safety.null_sample": True, "safety.check.enabled": True}
+GUARDED: dict[str, Any] = {"safety.margin.enabled": True, "safety.margin.delta": 0.2,
+                           "safety.margin.init_n": 0.5, "safety.null_sample": True,
+                           "safety.check.enabled": True, "safety.fallback": "least_force"}
 
 
 @dataclass(frozen=True)
 class MarginConfig:
     """The force margin from the model's measured error (docs/planner.md, Eq. M1)."""
 
-    kappa: float = 0.0
+    enabled: bool = True
+    delta: float = 0.2
     window: int = 20
-    min_count: int = 5
-    init_n: float = 0.0
+    min_count: int = 10
+    init_n: float = 0.5
     max_n: float = 6.0
 
 
@@ -264,21 +273,21 @@ class MarginConfig:
 class CheckConfig:
     """The check of the command against the model before it goes out (Eq. M3)."""
 
-    enabled: bool = False
+    enabled: bool = True
     candidates: int = 8
 
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """End-of-task conditions (section 4.2) and the guard of the force limit (Eq. M1-M3)."""
+    """End-of-task conditions (section 4.2) and the guard of the force limit (Eq. M1-M4)."""
 
     f_prewarn_n: float = 20.0
     t_max_s: float = 60.0
     q_ter_mm: float = 25.0
     margin: MarginConfig = MarginConfig()
     check: CheckConfig = CheckConfig()
-    null_sample: bool = False
-    fallback_mmps: float = 0.0
+    null_sample: bool = True
+    fallback: str = "least_force"
 
 
 @dataclass(frozen=True)

@@ -11,15 +11,17 @@ run one OL-MPPI cycle at every control instant (docs/graph.md, "Time and lockste
   20 N prewarning and t_max (:class:`~peel_planner_node.safety.SafetyMonitor`), answered at
   once with a zero command. A re-sent sample (same stamp) gets the answer already computed.
 
-The guard of the force limit (:mod:`~peel_planner_node.guard`, Eq. M1-M3) is the planner's; the
+The guard of the force limit (:mod:`~peel_planner_node.guard`, Eq. M1-M4) is the planner's; the
 loop keeps what a node reports of it as plain fields: ``margin_n`` (the larger axis margin in
 use at the last plan, N), ``margins_n`` (RX, RZ) and ``guard`` (the task's
-:meth:`~peel_planner_node.guard.GuardStats.as_dict`); a fallback is a line of its own, and the
-line that ends a task carries the task's guard summary.
+:meth:`~peel_planner_node.guard.GuardStats.as_dict`), and :meth:`ControlLoop.safety_report` is
+its JSON for ``/peel/planner_safety`` (what the plant bridges put into the trajectory's meta); a
+fallback is a line of its own, and the line that ends a task carries the task's guard summary.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -164,6 +166,13 @@ class ControlLoop:
         elif stop is None:
             note = self.read_guard(history, note)
         return Answer(s.stamp_ns, self.task, u, note)
+
+    def safety_report(self) -> str | None:
+        """The JSON of ``/peel/planner_safety``: ``task`` and the task's guard counts (None
+        before the task's first plan)."""
+        if not self.guard:
+            return None
+        return json.dumps({"task": self.task, **self.guard})
 
     def read_guard(self, history: Trajectory, note: str | None) -> str | None:
         """Copy the guard's state after a plan into the plain fields; a fallback's line."""

@@ -237,11 +237,13 @@ class BarrierCritic(RunningCritic):
 
 
     def tightened(self, f: torch.Tensor, margin: torch.Tensor) -> torch.Tensor:
-        """Eq. M2: B_a with the limit f_prewarn_n - m_a per axis (the ramp from start_n reaches
-        ``weight`` there, at least 1 N above start_n), summed over the two axes."""
+        """Eq. M2: B_a with the limit f_prewarn_n - m_a per axis, summed over the two axes: the
+        stop term from there on and (``margin_ramp``) the ramp from start_n reaching ``weight``
+        there, at least 1 N above start_n; without ``margin_ramp`` the ramp is the barrier's."""
         c = self.cfg
         lim = c.f_prewarn_n - margin
-        span = (lim - c.start_n).clamp(min=1.0)
+        ramp_end = lim if c.margin_ramp else torch.full_like(lim, c.f_prewarn_n)
+        span = (ramp_end - c.start_n).clamp(min=1.0)
         over = (f - c.start_n).clamp(min=0.0) / span
         out = c.weight * (over * over).sum(dim=-1)
         if c.stop_weight:

@@ -1,29 +1,39 @@
-"""Holding the force limit under model error (docs/planner.md, Eq. M1-M3; not in the paper).
+"""Holding the force limit under model error (docs/planner.md, Eq. M1-M4; not in the paper).
 
 The planner's model is wrong by an amount it can measure: at every control instant the forces
-it predicted for the command that went out are compared with the forces then measured.
+it predicted for the command that went out are compared with the forces then measured, sample
+by sample (the 1-5 model steps of the control period the command was in force).
 
-* Eq. M1, the margin per axis a in {RX, RZ}, over the last ``window`` errors W_a::
+* Eq. M1, the margin per axis a in {RX, RZ}: a conformal (distribution-free) upper quantile of
+  the last ``window`` errors W_a, n = |W_a|::
 
       e = |F_a measured| - |F_a predicted|          (> 0: the model under-predicted)
-      m_a = min(m_max, kappa * sqrt(mean_{e in W_a} max(e, 0)^2))   once |W_a| >= min_count,
-      m_a = init_n                                                    before;
+      r = ceil((n + 1) (1 - delta))
+      m_a = min(m_max, max(0, e_(r)))   (e_(r): the r-th smallest of W_a; r > n: m_max)
+                                                              once n >= min_count,
+      m_a = init_n                                            before.
 
-  a one-sided RMS: only under-prediction tightens the limit, and as the errors of a model that
-  is right replace those of one that was wrong, m_a falls back (to 0 for an exact model).
-* Eq. M2, the tightened limit: the barrier critic and the check see |F_a| + m_a, i.e. the
-  prewarning f_prewarn is approached no closer than m_a by the prediction.
+  If the next error is exchangeable with those in W_a, P(e > m_a) <= delta: the chance
+  constraint of Eq. M2 below. Only under-prediction tightens the limit, and as the errors of a
+  model that is right replace those of one that was wrong, m_a falls back (to 0 for an exact
+  model): the limit widens again.
+* Eq. M2, the tightened limit (a chance constraint): the barrier critic and the check see
+  |F_a| + m_a, i.e. predicted forces must stay below f_prewarn - m_a, so that
+  P(|F_a measured| >= f_prewarn) <= P(e > m_a) <= delta per sample.
 * Eq. M3, the check of the command: candidate speeds c_0 = u_min < ... < c_{M-1} = max_k v^k_0,
   each rolled out as c_j for the first control period and then the prior plan capped at c_j,
   in the same batch as the N samples; g_j = max_{t, a} (|F_a,t| + m_a) - f_prewarn. The command
   is min(u*, c*) with c* the speed where g first crosses 0 (linear between the last candidate
-  with g < 0 and the first with g >= 0; none: u*). If g_0 >= 0 (even u_min is predicted over
-  the tightened limit) the fallback ``fallback_mmps`` goes out.
+  with g < 0 and the first with g >= 0; none: u*).
+* Eq. M4, the fallback when g_0 >= 0 (even u_min is predicted over the tightened limit):
+  ``least_force`` sends c_f, f = argmin_j g_j (the candidate with the lowest predicted peak,
+  the slowest among equals), ``u_min`` sends c_0. Both are >= u_min > 0: the blade never stops,
+  so q reaches q_ter within (q_ter - q_0) / u_min (50 s for 25 mm at 0.5 mm/s) < t_max.
 
 :class:`ForceMargin` is Eq. M1, :func:`check_candidates` / :func:`largest_safe` Eq. M3,
-:func:`first_period_forces` the prediction for the issued command (from the batch's first
-control period, which depends only on v_0), :class:`GuardStats` what the trajectory's meta
-and the log report. Everything here is plain torch / numpy.
+:func:`fallback_speed` Eq. M4, :func:`first_period_forces` the prediction for the issued
+command (from the batch's first control period, which depends only on v_0), :class:`GuardStats`
+what the trajectory's meta and the log report. Everything here is plain torch / numpy.
 """
 
 from __future__ import annotations
@@ -59,12 +69,18 @@ class ForceMargin:
             self.errors[axis].extend(float(x) for x in e[:, axis] if math.isfinite(x))
 
     def axis_margin(self, axis: int) -> float:
-        """m_a of Eq. M1, N."""
+        """m_a of Eq. M1, N: the conformal (1 - delta) upper quantile of the window."""
         c, errs = self.cfg, self.errors[axis]
-        if len(errs) < c.min_count:
+        n = len(errs)
+        if not c.enabled:
+            return 0.0
+        if n < c.min_count:
             return float(c.init_n)
-        under = np.maximum(np.asarray(errs), 0.0)
-        return float(min(c.max_n, c.kappa * math.sqrt(float(np.mean(under * under)))))
+        r = math.ceil((n + 1) * (1.0 - c.delta))
+        if r > n:
+            return float(c.max_n)
+        e_r = float(np.partition(np.asarray(errs), r - 1)[r - 1])
+        return float(min(c.max_n, max(0.0, e_r)))
 
     @property
     def value(self) -> np.ndarray:
@@ -103,6 +119,14 @@ def largest_safe(c: np.ndarray, g: np.ndarray, u_star: float) -> float | None:
     lo, hi = float(c[j - 1]), float(c[j])
     frac = float(-g[j - 1] / (g[j] - g[j - 1]))
     return float(min(u_star, lo + (hi - lo) * frac))
+
+
+def fallback_speed(c: np.ndarray, g: np.ndarray, mode: str) -> float:
+    """Eq. M4: the command when no candidate is safe: ``least_force`` the candidate with the
+    lowest g (the slowest among equals), ``u_min`` the slowest, c_0."""
+    if mode == "u_min":
+        return float(c[0])
+    return float(c[int(np.argmin(g))])
 
 
 def first_period_forces(v0: np.ndarray, forces: np.ndarray, u: float) -> np.ndarray | None:

@@ -59,6 +59,7 @@ from .guard import (
     ForceMargin,
     GuardStats,
     check_candidates,
+    fallback_speed,
     first_period_forces,
     largest_safe,
     peak_over_limit,
@@ -284,9 +285,10 @@ class Planner:
             return u_star, False
         c, g = self.last["check"]
         safe = largest_safe(c, g, u_star)
-        if safe is None:
-            self.U = torch.full_like(self.U, float(self.config.mppi.u_min))
-            return float(self.config.safety.fallback_mmps), True
+        if safe is None:  # Eq. M4: nothing is safe; the blade keeps moving at >= u_min
+            u_fb = fallback_speed(c, g, self.config.safety.fallback)
+            self.U = torch.full_like(self.U, u_fb)
+            return u_fb, True
         if safe < u_star:
             self.U = torch.clamp(self.U, max=safe)
         return safe, False

@@ -10,7 +10,8 @@ refuses with the reason, keeping the old model. Versions come from a
 :class:`~peel_model.versions.ModelLedger` (0 = the starting model, +1 per accepted swap,
 whoever asked for it and whatever the file is called); the active version goes out on
 ``/peel/model_version`` (Int64, transient local) and, with the model's identity (SHA-256,
-producer and task of a learner update), on ``/peel/model_info`` (JSON, transient local).
+producer and task of a learner update), on ``/peel/model_info`` (JSON, transient local). The
+task's guard of the force limit goes out on ``/peel/planner_safety`` (JSON) before each command.
 A state message with a non-finite value is dropped where it enters, counted and logged
 (:class:`~peel_msgs_py.wire.DropLog`); the sample it belonged to is not planned on.
 """
@@ -80,6 +81,8 @@ class PlannerNode(NamedRefusals, Node):
         self.pub_version = self.create_publisher(Int64, topics.MODEL_VERSION,
                                                  qos(topics.MODEL_VERSION))
         self.pub_info = self.create_publisher(String, topics.MODEL_INFO, qos(topics.MODEL_INFO))
+        self.pub_safety = self.create_publisher(String, topics.PLANNER_SAFETY,
+                                                qos(topics.PLANNER_SAFETY))
         self.create_subscription(WrenchStamped, topics.WRENCH, self.on_wrench,
                                  qos(topics.WRENCH, subscriber=True))
         self.create_subscription(TwistStamped, topics.TWIST, self.on_twist,
@@ -162,6 +165,9 @@ class PlannerNode(NamedRefusals, Node):
         self.on_part(msg, topics.POSE, q_mm=m_to_mm(msg.pose.position.x))
 
     def publish_cmd(self, a: Answer) -> None:
+        report = self.loop.safety_report()
+        if report is not None:  # before the command it belongs to: a bridge has it at task end
+            self.pub_safety.publish(String(data=report))
         msg = TwistStamped()
         msg.header.stamp, msg.header.frame_id = stamp(a.stamp_ns), codec.task_frame_id(a.task)
         msg.twist.linear.x = mmps_to_mps(a.u_mmps)

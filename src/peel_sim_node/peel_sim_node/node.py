@@ -162,7 +162,7 @@ class SimNode(NamedRefusals, Node):
 
     def end_task(self, outcome: str | None) -> None:
         index = self.seq.index
-        traj = self.seq.finish({**self.plant.model_meta(index),
+        traj = self.seq.finish({**self.plant.graph_meta(index),
                                 "cmd_limits_mmps": [self.limits.u_min_mmps,
                                                     self.limits.u_max_mmps],
                                 "cmd_clamped": self.clamped, "cmd_dropped": self.dropped},
