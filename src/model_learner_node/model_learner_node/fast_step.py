@@ -123,6 +123,16 @@ class FastStepper:
         self.results: list[FastResult] = []
         self._last_n = 0
 
+    def warm_up(self) -> float:
+        """One fast step on a synthetic peel (the first ``torch.func`` call of a process costs
+        seconds); returns its wall time, s. The stepper's state is left as it was."""
+        from .synthetic import synthetic_trajectory
+
+        t0 = time.perf_counter()
+        win = trajectory_windows(synthetic_trajectory(0, max(self.h + 2, 12)), self.h)
+        self.adapt(win.to_torch())
+        return time.perf_counter() - t0
+
     def start(self, task: int) -> None:
         """A new task: the model in use is the prior again."""
         self.task, self.model, self.steps, self.results, self._last_n = task, self.prior, 0, [], 0

@@ -75,14 +75,20 @@ class InPeel:
         """Task ``index`` (0-based) has finished: nothing of it is offered any more."""
         self.ended.add(index)
 
+    def live(self, task: int) -> bool:
+        """Whether task ``task`` (1-based) is still running."""
+        return task - 1 not in self.ended and task - 1 == self.task
+
     def current(self, result: FastResult) -> bool:
-        """Whether ``result``'s task (1-based) is still running."""
-        return result.task - 1 not in self.ended and result.task - 1 == self.task
+        """Whether ``result``'s task is still running."""
+        return self.live(result.task)
 
     def step(self, history: Trajectory) -> tuple[FastResult | None, Path | None]:
         """The fast step on ``history`` (the fast-step thread, under the node's lock: the
         stepper is only touched here); the checkpoint of an accepted fast model, else None."""
         task = int(history.meta["task_index"]) + 1
+        if not self.live(task):
+            return None, None  # the task ended while this copy waited: nothing to fit for
         if task != self.stepper.task:
             self.stepper.start(task)
         result = self.stepper.observe(history)

@@ -90,10 +90,10 @@ class InPeelTopics:
                         f"[0, {result.fit_end}), one-step error {result.error_fast_n:.3f} N on "
                         f"[{result.fit_end}, {result.n_samples}) against {result.error_in_use_n:.3f}"
                         f" N in use, {result.fast_s:.2f} s")
-                if path is None:
-                    log.info(f"{line}: not used")
+                if not result.accepted:
+                    log.info(f"{line}: not used (not better than the model in use)")
                     continue
-                if not self.in_peel.current(result):
+                if path is None or not self.in_peel.current(result):
                     log.info(f"{line}: its task ended first, not offered")
                     continue
                 ok, reason = self.swap(path)

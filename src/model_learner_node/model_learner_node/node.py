@@ -70,14 +70,14 @@ class LearnerNode(NamedRefusals, Node):
         self.queue: queue.Queue[Trajectory | None] = queue.Queue()
         self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
                                                 topics.qos_profile(topics.MODEL_UPDATE))
-        self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
-                                 topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.drops = DropLog()
         self.closing = threading.Event()
+        self.lock = threading.Lock()  # Algorithm 1 and the fast step never run at once
+        self.in_peel = self.fast_step(values)  # warmed up before the bridge sees the learner
+        self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
+                                 topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.health = LearnerHealth()
         publish_diagnostics(self, self.diagnostics)
-        self.lock = threading.Lock()  # Algorithm 1 and the fast step never run at once
-        self.in_peel = self.fast_step(values)
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
         self.worker.start()
         self.get_logger().info(f"learner ready: {self.learner.describe()}")
@@ -88,6 +88,8 @@ class LearnerNode(NamedRefusals, Node):
         if not cfg.enabled:
             return None
         stepper = FastStepper(self.learner.predictor, cfg)
+        self.get_logger().info(f"fast step inside the peel every {cfg.fast_every} samples "
+                               f"(warm-up {stepper.warm_up():.1f} s)")
         return InPeelTopics(self, InPeel(stepper, self.learner.out_dir, self.learner.producer),
                             self.lock, self.request_swap, self.closing)
 

@@ -40,7 +40,9 @@ def fast_stepper(method: str, predictor: Any, learner_overrides: str | None,
     cfg = load_fast_config(learner_overrides, **(changes or {}))
     if not cfg.enabled:
         cfg = load_fast_config(learner_overrides, **{**(changes or {}), "fast_every": 5})
-    return FastStepper(predictor, cfg)
+    stepper = FastStepper(predictor, cfg)
+    stepper.warm_up()  # as the learner node does at start: fast_s is the step alone
+    return stepper
 
 
 @dataclass
