@@ -60,6 +60,18 @@ def test_cli_writes_the_report_and_refuses_a_missing_arm(tmp_path: Path) -> None
     assert printed == json.loads((out / "fast_report.json").read_text())
     assert (out / "fast_task1_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| ol-mppi-fast |" in (out / "fast_report.md").read_text()
+    other = results()
+    other["runs"] = {"902": other["runs"]["900"]}
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    proc = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "fast-report", str(good),
+                           str(tmp_path / "other.json"), "--out", str(tmp_path / "both")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["seeds"] == ["900", "901", "902"]
+    proc = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "fast-report", str(good),
+                           str(good), "--out", str(tmp_path / "twice")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "seed 900 is in two" in proc.stderr, proc.stderr
     bad = results()
     for s in bad["runs"].values():
         del s["baseline2"]

@@ -64,8 +64,9 @@ def timing(runs: Mapping[str, Any]) -> dict[str, Any]:
                if "next_update_s" in rec]
         out[f"{m}_update_s_mean"] = float(np.mean(ups)) if ups else None
         out[f"{m}_update_s_max"] = float(np.max(ups)) if ups else None
-    plans = [rec["plan_s"] for s in runs for m in runs[s] for rec in runs[s][m]["tasks"]]
-    out["plan_s_mean_max"] = float(np.max(plans)) if plans else None
+    plans = [rec["plan_s"] for s in runs for m in (FAST, "ol-mppi", "baseline1", "baseline2")
+             for rec in runs[s].get(m, {}).get("tasks", [])]
+    out["plan_s_task_mean_max"] = float(np.max(plans)) if plans else None  # learned models
     return out
 
 
@@ -143,18 +144,39 @@ def markdown(s: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def read_results(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise PeelError(f"{path}: cannot read results ({exc})") from None
+
+
+def merge(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Several experiments' results as one: their seeds' runs together (a seed in two, or a
+    different plant or sequence, is refused), every command listed."""
+    runs: dict[str, Any] = {}
+    for part in parts:
+        for seed, run in part["runs"].items():
+            if seed in runs:
+                raise PeelError(f"seed {seed} is in two of the results files")
+            runs[seed] = run
+    first = parts[0]
+    if any(p.get("plant", {}).get("name") != first.get("plant", {}).get("name")
+           or p.get("sequence") != first.get("sequence") for p in parts):
+        raise PeelError("the results files are of different plants or sequences")
+    return {**first, "runs": runs, "command": [p.get("command") for p in parts]}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="peel fast-report", description=__doc__.split("\n\n")[0])
-    p.add_argument("results", type=Path, help="results.json of peel experiment")
+    p.add_argument("results", type=Path, nargs="+",
+                   help="results.json of peel experiment; several: their seeds together")
     p.add_argument("--out", type=Path, required=True, help="folder for the report files")
     p.add_argument("--tasks", type=int_list(min=1), default=[1, 2, 3, 5],
                    help="tasks at which the fraction closed is given (default 1,2,3,5)")
     args = p.parse_args(argv)
     check_location(args.out, "--out")
-    try:
-        results = json.loads(args.results.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise PeelError(f"{args.results}: cannot read results ({exc})") from None
+    results = merge([read_results(path) for path in args.results])
     summary = summarize(results, args.tasks)
     args.out.mkdir(parents=True, exist_ok=True)
     plot_task1(results["runs"], args.out / "fast_task1_error.png")
