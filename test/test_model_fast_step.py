@@ -144,3 +144,35 @@ def test_in_peel_names_the_fast_step_and_never_offers_an_ended_task(peel: Trajec
     assert all(ended.step(d)[1] is None for d in snapshots)  # stepped, never written
     assert not (tmp_path / "ended").exists() or not list((tmp_path / "ended").iterdir())
     assert feed(ended, peel, 0, 40) == []  # a late sample of the ended task starts nothing
+
+
+def test_the_experiment_arm_plans_on_its_fast_models_and_records_them(tmp_path: Path) -> None:
+    """``peel experiment``'s ``ol-mppi-fast`` arm (run_job, the shipped model, two short peels
+    of the level-3 plant, small N/H): each task's record holds its fast steps with their
+    identity, the errors of the model in use and of the pretrained model per sample, and the
+    second task's model came from the update between the peels (the prior, not a fast model)."""
+    from peel_experiments.experiment import Setup, planner_params, run_job
+
+    sim = tmp_path / "sim.yaml"
+    sim.write_text("peel_sim_node:\n  ros__parameters:\n    task:\n      t_max_s: 8.0\n")
+    learner = tmp_path / "learner.yaml"
+    learner.write_text("model_learner_node:\n  ros__parameters:\n    maml:\n      meta_steps: 1\n"
+                       "      support_slices: 4\n      query_slices: 4\n      eval_slices: 4\n")
+    setup = Setup(checkpoint=str(shipped_checkpoint()), tasks=2, sim_overrides=str(sim),
+                  planner_params=planner_params(n_samples=8, horizon=2),
+                  learner_overrides=str(learner), save_model=False, plant_level=3)
+    out = run_job("ol-mppi-fast", 801, setup)
+    first, second = out["tasks"]
+    assert first["update"]["updated"] and second["model_version"] == 1  # the update after 1
+    for rec in (first, second):
+        fast = rec["fast"]
+        assert fast["steps"] == len(fast["results"]) == len(fast["fast_s"]) >= 1
+        assert fast["accepted"] == len(fast["identities"])
+        assert len(fast["error_in_use_n"]) == len(fast["error_pretrained_n"]) == rec["n_samples"] - 1
+        for r in fast["results"]:
+            assert r["task"] == rec["task"] and r["fit_end"] == r["n_samples"] - CFG.fast_holdout
+    # task 1 plans on the pretrained model until its first used fast step
+    e_use, e_pre = (np.asarray(first["fast"][k]) for k in ("error_in_use_n", "error_pretrained_n"))
+    used = [r["n_samples"] for r in first["fast"]["results"] if r["accepted"]]
+    upto = (used[0] if used else len(e_pre) + 1) - 1
+    np.testing.assert_allclose(e_use[:upto], e_pre[:upto], rtol=1e-6)
