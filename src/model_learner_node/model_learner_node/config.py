@@ -71,6 +71,33 @@ GATE_SPECS: tuple[ParamSpec, ...] = (
 )
 
 
+#: Parameters of the ``online:`` group: the fast step inside the peel
+#: (model_learner_node.fast_step; Eq. 26 on the running task's own samples).
+ONLINE_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("online.fast_every", int, 0,
+              "samples of the running task between two fast steps; 0 = no fast step (the "
+              "paper's Algorithm 1, between peels only)", min=0, max=1000),
+    ParamSpec("online.fast_steps", int, 20, "gradient steps of Eq. 26 per fast step", min=1,
+              max=100),
+    ParamSpec("online.fast_alpha", float, 0.1, "step size of the fast step's Eq. 26",
+              min=0.0, max=1.0),
+    ParamSpec("online.fast_holdout", int, 10,
+              "newest samples of the task kept out of the fit and used to check it", min=1,
+              max=1000),
+    ParamSpec("online.fast_min_samples", int, 20,
+              "fewest fitted samples before the first fast step of a task", min=1, max=10000),
+    ParamSpec("online.fast_margin", float, 0.05,
+              "use the fast model when its held-out error (Eq. 39) is below (1 - margin) x "
+              "the model in use's", min=0.0, max=0.9),
+    ParamSpec("online.fast_params", str, "head",
+              "what the fast step moves: head = the output layer's weight and bias, all = every "
+              "trainable parameter", choices=("head", "all")),
+    ParamSpec("online.fast_grad_clip", float, 1.0,
+              "gradient norm a fast step's gradient is scaled down to; 0 = no clip", min=0.0,
+              max=1000.0),
+)
+
+
 #: Parameters of the ``baseline2:`` group of config/model_learner_node.yaml (section 4.4).
 BASELINE2_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("baseline2.steps", int, 20, "Adam steps per update", min=1),

@@ -10,6 +10,10 @@ service. Every task's update ends in one report on ``/peel/model_update``
 failed, skipped), so the simulator and ``peel graph`` go on at once instead of waiting for a
 model that will not come. A starting model with non-finite outputs is refused (exit 2); after a
 failed or refused update the learner keeps training its own last good weights.
+
+With ``online.fast_every`` > 0 the learner also takes the fast step inside the peel
+(:mod:`~model_learner_node.in_peel_node`): on the running task's samples, swapped in mid-task
+over the same service when it predicts better; one lock keeps it and Algorithm 1 apart.
 """
 
 from __future__ import annotations
@@ -39,7 +43,10 @@ from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.wire import DropLog
 
+from .fast_step import FastStepConfig, FastStepper
 from .health import LearnerHealth
+from .in_peel import InPeel
+from .in_peel_node import InPeelTopics
 from .online import OnlineLearner, task_number
 from .parameters import NODE_NAME, SPECS
 
@@ -63,22 +70,38 @@ class LearnerNode(NamedRefusals, Node):
         self.queue: queue.Queue[Trajectory | None] = queue.Queue()
         self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
                                                 topics.qos_profile(topics.MODEL_UPDATE))
-        self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
-                                 topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.drops = DropLog()
         self.closing = threading.Event()
+        self.lock = threading.Lock()  # Algorithm 1 and the fast step never run at once
+        self.in_peel = self.fast_step(values)  # warmed up before the bridge sees the learner
+        self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
+                                 topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.health = LearnerHealth()
         publish_diagnostics(self, self.diagnostics)
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
         self.worker.start()
         self.get_logger().info(f"learner ready: {self.learner.describe()}")
 
+    def fast_step(self, values: dict[str, Any]) -> InPeelTopics | None:
+        """The fast step inside the peel when ``online.fast_every`` > 0, else None."""
+        cfg = FastStepConfig.from_params(values)
+        if not cfg.enabled:
+            return None
+        stepper = FastStepper(self.learner.predictor, cfg)
+        self.get_logger().info(f"fast step inside the peel every {cfg.fast_every} samples "
+                               f"(warm-up {stepper.warm_up():.1f} s)")
+        return InPeelTopics(self, InPeel(stepper, self.learner.out_dir, self.learner.producer),
+                            self.lock, self.request_swap, self.closing)
+
     def on_trajectory(self, msg: Float64MultiArray) -> None:
         """A finished task, queued for the worker; one that does not decode or holds
         non-finite values is dropped here (counted, logged at most every few seconds)."""
         traj = inbox.take(self.drops, topics.TRAJECTORY, inbox.trajectory, msg, self.log_drop)
-        if traj is not None:
-            self.queue.put(traj)
+        if traj is None:
+            return
+        if self.in_peel is not None:
+            self.in_peel.end_task(task_number(traj, self.learner.n_tasks + 1) - 1)
+        self.queue.put(traj)
 
     def log_drop(self, line: str | None) -> None:
         if line is not None:
@@ -87,23 +110,28 @@ class LearnerNode(NamedRefusals, Node):
     def work(self) -> None:
         """Worker thread: one update per finished task, the swap request, the report."""
         while (traj := self.queue.get()) is not None and not self.closing.is_set():
-            t0 = time.perf_counter()
-            report = self.update(traj)
-            update_s = time.perf_counter() - t0
-            if self.closing.is_set():
-                return  # the node is shutting down: nothing is offered any more
-            try:
-                if report.status == OFFERED:
-                    report = self.offer(report)
-                if report.status == OFFERED:
-                    return  # stopped before the planner answered: nothing to report
-                self.pub_update.publish(String(data=report.to_json()))
-                self.health.record(report, update_s)
-            except Exception as exc:  # rclpy refuses calls once the node is being destroyed
+            with self.lock:
+                t0 = time.perf_counter()
+                report = self.update(traj)
+                update_s = time.perf_counter() - t0
                 if self.closing.is_set():
-                    return
-                self.get_logger().error(f"task {report.task}: the update could not be offered: "
-                                        f"{type(exc).__name__}: {exc}")
+                    return  # the node is shutting down: nothing is offered any more
+                self.finish(report, update_s)
+
+    def finish(self, report: UpdateReport, update_s: float) -> None:
+        """Offer an update to the planner; publish the report on ``/peel/model_update``."""
+        try:
+            if report.status == OFFERED:
+                report = self.offer(report)
+            if report.status == OFFERED:
+                return  # stopped before the planner answered: nothing to report
+            self.pub_update.publish(String(data=report.to_json()))
+            self.health.record(report, update_s)
+        except Exception as exc:  # rclpy refuses calls once the node is being destroyed
+            if self.closing.is_set():
+                return
+            self.get_logger().error(f"task {report.task}: the update could not be offered: "
+                                    f"{type(exc).__name__}: {exc}")
 
     def diagnostics(self) -> list[Status]:
         """The learner's health (:class:`~model_learner_node.health.LearnerHealth`), 1 Hz."""
@@ -158,6 +186,9 @@ class LearnerNode(NamedRefusals, Node):
         rclpy call races the destruction of the node."""
         self.closing.set()
         self.queue.put(None)
+        if self.in_peel is not None:
+            self.in_peel.stop()
+            self.in_peel.thread.join(timeout=JOIN_TIMEOUT_S)
         self.worker.join(timeout=JOIN_TIMEOUT_S)
         super().destroy_node()
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from peel_model.config import MODEL_SPECS
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 
-from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, TRAIN_SPECS
+from .config import BASELINE2_SPECS, GATE_SPECS, MAML_SPECS, ONLINE_SPECS, TRAIN_SPECS
 
 NODE_NAME = "model_learner_node"
 
@@ -28,5 +28,6 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
 
 
 #: Everything the node declares.
-SPECS: tuple[ParamSpec, ...] = (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *GATE_SPECS, *BASELINE2_SPECS,
+SPECS: tuple[ParamSpec, ...] = (*MODEL_SPECS, *TRAIN_SPECS, *MAML_SPECS, *GATE_SPECS, *ONLINE_SPECS,
+                                 *BASELINE2_SPECS,
                                  *NODE_SPECS, USE_SIM_TIME)

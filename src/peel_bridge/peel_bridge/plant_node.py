@@ -13,7 +13,9 @@ per-sample publishing.
   of every model it plans with) and the learner's ``/peel/model_update`` reports, collected in an
   :class:`~peel_msgs_py.modelinfo.UpdateWait` that the task loop asks between tasks
   (:meth:`PlantTopics.readiness`), and the version each task started with
-  (:meth:`PlantTopics.task_started`, :meth:`PlantTopics.model_meta`);
+  (:meth:`PlantTopics.task_started`, :meth:`PlantTopics.model_meta`: also the identity of every
+  model the planner announced during the task, a fast step inside the peel named by its
+  ``fast`` field);
 * the planner's guard of the force limit, ``/peel/planner_safety`` (JSON after each plan): the
   last report of each task becomes its trajectory's ``planner_guard``, so both bridges carry the
   same safety fields (:meth:`PlantTopics.graph_meta` = model following + ``planner_guard``).
@@ -33,7 +35,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray, String
 
 from peel_msgs_py import codec, inbox, topics
-from peel_msgs_py.modelinfo import UpdateWait
+from peel_msgs_py.modelinfo import ModelRecord, UpdateWait
 from peel_msgs_py.ros.messages import stamp, trajectory_msg
 from peel_msgs_py.ros.qos import to_profile
 from peel_msgs_py.task import Sample
@@ -71,6 +73,7 @@ class PlantTopics:
         self.drops = DropLog()
         self.model_version: int | None = None
         self.versions_seen: set[int] = set()
+        self.records: dict[int, ModelRecord] = {}
         self.version_at_start: dict[int, int | None] = {}
 
     # -- model following ------------------------------------------------------------------
@@ -82,6 +85,7 @@ class PlantTopics:
         self.updates.add_record(rec)
         self.model_version = rec.version
         self.versions_seen.add(rec.version)
+        self.records[rec.version] = rec
 
     def on_model_update(self, msg: String) -> None:
         """The learner's report on its update after a task."""
@@ -114,10 +118,14 @@ class PlantTopics:
         self.version_at_start[index] = self.model_version
 
     def model_meta(self, index: int) -> dict[str, Any]:
-        """The trajectory meta of model following: the version task ``index`` started with and
-        every version seen so far."""
-        return {"model_version": self.version_at_start.get(index),
-                "model_versions": sorted(self.versions_seen)}
+        """The trajectory meta of model following: the version task ``index`` started with,
+        every version seen so far, and the identity (``/peel/model_info`` JSON) of each model
+        announced from the task's start on."""
+        start = self.version_at_start.get(index)
+        models = [json.loads(r.to_json()) for v, r in sorted(self.records.items())
+                  if start is None or v >= start]
+        return {"model_version": start, "model_versions": sorted(self.versions_seen),
+                "models": models}
 
     def graph_meta(self, index: int) -> dict[str, Any]:
         """The trajectory meta a bridge takes from the graph for task ``index``: model following

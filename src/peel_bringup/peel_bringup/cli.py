@@ -24,6 +24,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "figures": ("model_learner_node.figures_cli:main", "Fig. 9 and Fig. 10: loss ablation and model comparison"),
     "bench": ("peel_experiments.bench:main", "benchmarks printing JSON: sim, model, planner, ros, nachi, nachi-graph"),
     "experiment": ("peel_experiments.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
+    "fast-report": ("peel_experiments.fast_report:main",
+                    "what the fast step inside the peel bought, from an experiment's results"),
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
     "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",

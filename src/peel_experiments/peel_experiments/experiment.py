@@ -5,6 +5,8 @@
 
 * ``ol-mppi``: after every peel the model is updated with Algorithm 1
   (:class:`model_learner_node.maml.MetaLearner`); the replay pool holds the earlier peels;
+* ``ol-mppi-fast``: ``ol-mppi`` plus the fast step inside every peel
+  (:mod:`peel_experiments.fast_arm`, :mod:`model_learner_node.fast_step`);
 * ``baseline1``: the model is never updated (the original MPPI);
 * ``baseline2``: after every peel the model is retrained on all peels so far
   (:class:`model_learner_node.baselines2.HistoryRetrainer`);
@@ -46,6 +48,8 @@ from peel_msgs_py.trajectory import Trajectory
 
 NODE = "peel_bringup"
 METHODS: tuple[str, ...] = ("ol-mppi", "baseline1", "baseline2")
+#: every arm ``--methods`` accepts: the paper's three and OL-MPPI with the fast step
+KNOWN_METHODS: tuple[str, ...] = (*METHODS, "ol-mppi-fast")
 ORACLE = "oracle"
 
 #: ``experiment.*`` and ``sweep.*`` groups of config/peel_bringup.yaml.
@@ -141,9 +145,9 @@ def check_methods(methods: Sequence[str]) -> None:
     if not methods:
         raise PeelError("parameter 'methods' must name at least one method")
     for m in methods:
-        if m not in METHODS:
+        if m not in KNOWN_METHODS:
             raise PeelError(f"parameter 'methods': unknown method {m!r} (known: "
-                            f"{', '.join(METHODS)})")
+                            f"{', '.join(KNOWN_METHODS)})")
     if len(set(methods)) != len(methods):
         raise PeelError("parameter 'methods' names a method twice")
 
@@ -164,6 +168,7 @@ class Setup:
     save_model: bool = True
     substrate_stream: int = 0  # 0: the experiment's substrates, 1: the sweep's
     maml_changes: dict[str, Any] = field(default_factory=dict)
+    fast_changes: dict[str, Any] = field(default_factory=dict)  # online.* of ol-mppi-fast
     baseline2_changes: dict[str, Any] = field(default_factory=dict)
     plant_level: int | None = None  # None: plant.level of the simulator config
     sequence: str = "stationary"
@@ -221,7 +226,7 @@ def _trace(traj: Trajectory) -> dict[str, list[float]]:
 def _updater(method: str, predictor: Any, setup: Setup) -> Any:
     """The method's between-peel update as model_learner_node runs it: Algorithm 1 behind the
     held-out check (``gate.*``), baseline 2 as the paper has it; None for the others."""
-    if method == "ol-mppi":
+    if method in ("ol-mppi", "ol-mppi-fast"):
         from model_learner_node.gate import HeldOutGate, load_gate_config
         from model_learner_node.maml import MetaLearner, load_maml_config
 
@@ -250,6 +255,7 @@ def run_job(method: str, seed: int, setup: Setup,
     from peel_sim_node.env import PeelEnv
     from peel_sim_node.episode import run_episode
 
+    from .fast_arm import FastPolicy, fast_stepper, task_record
     from .oracle import learned_planner, oracle_planner
 
     torch.set_num_threads(1)
@@ -261,6 +267,8 @@ def run_job(method: str, seed: int, setup: Setup,
     cost = Cost(pcfg.cost)
     predictor = None if method == ORACLE else load_checkpoint(setup.checkpoint)
     updater = None if predictor is None else _updater(method, predictor, setup)
+    stepper = fast_stepper(method, predictor, setup.learner_overrides, setup.fast_changes)
+    pretrained = load_checkpoint(setup.checkpoint) if stepper is not None else None
     pool = ReplayPool()
     version, update_s = 0, 0.0
     records: list[dict[str, Any]] = []
@@ -284,6 +292,9 @@ def run_job(method: str, seed: int, setup: Setup,
                 plan_times.append(time.perf_counter() - t0)
                 return u
 
+            if stepper is not None:
+                stepper.start(k + 1)
+                policy = FastPolicy(planner, stepper, pcfg.dynamics, plan_times)
             t0 = time.perf_counter()
             traj = run_episode(env, policy, seed=ts, params=params)
             episode_s = time.perf_counter() - t0
@@ -294,6 +305,8 @@ def run_job(method: str, seed: int, setup: Setup,
                    "planner_guard": traj.meta["planner_guard"],
                    "update_s": update_s, "plan_s": float(np.mean(plan_times)) if plan_times
                    else 0.0, "episode_s": episode_s, "substrate": params}
+            if stepper is not None:
+                rec["fast"] = task_record(traj, policy, pretrained)
             last = traj
             if k == setup.tasks - 1 and method == "ol-mppi" and setup.save_model \
                     and setup.out_dir is not None:

@@ -231,7 +231,8 @@ def evaluate_targets(methods: Mapping[str, Sequence[Mapping[str, Any]]],
 
 # ------------------------------------------------------------------------------ figures
 
-_STYLE = {"ol-mppi": ("tab:red", "o"), "baseline1": ("tab:blue", "s"),
+_STYLE = {"ol-mppi": ("tab:red", "o"), "ol-mppi-fast": ("tab:purple", "D"),
+          "baseline1": ("tab:blue", "s"),
           "baseline2": ("tab:green", "^"), ORACLE: ("black", "")}
 
 

@@ -12,7 +12,9 @@ the wrong model. Here the planner is the only allocator:
   import this package) carries the model's identity: the SHA-256 of its safetensors file
   (recorded in its checkpoint JSON by :func:`~peel_model.checkpoint.save_checkpoint`)
   and, for an update of Algorithm 1, the ``producer`` and ``task`` written into the checkpoint
-  meta by :func:`update_meta`. An outside model has no producer.
+  meta by :func:`update_meta`; for a fast step inside a peel the ``producer`` and the
+  ``fast_step`` it names (:func:`fast_meta`; no ``task``, so no wait for an update between
+  peels ends on it). An outside model has no producer.
 * :meth:`ModelLedger.update_for` answers "has the learner's update after task k been swapped
   in, and under which version?" by that identity, never by comparing numbers.
 
@@ -34,11 +36,16 @@ from peel_msgs_py.modelinfo import ModelRecord
 
 from .checkpoint import read_checkpoint_config
 
-__all__ = ["PRODUCER_KEY", "TASK_KEY", "ModelLedger", "ModelRecord", "identify", "update_meta"]
+__all__ = ["FAST_KEY", "PRODUCER_KEY", "TASK_KEY", "ModelLedger", "ModelRecord", "fast_meta",
+           "identify", "update_meta"]
 
 #: Meta keys of a checkpoint written by Algorithm 1's node.
 PRODUCER_KEY = "producer"
 TASK_KEY = "task"
+FAST_KEY = "fast_step"
+
+#: (SHA-256, producer, task, fast step) of a checkpoint: what :func:`identify` reads.
+Identity = tuple[str, str | None, int | None, dict[str, Any] | None]
 
 
 def update_meta(producer: str, task: int, **extra: Any) -> dict[str, Any]:
@@ -46,16 +53,24 @@ def update_meta(producer: str, task: int, **extra: Any) -> dict[str, Any]:
     return {PRODUCER_KEY: producer, TASK_KEY: int(task), **extra}
 
 
-def identify(path: str | Path) -> tuple[str, str | None, int | None]:
-    """(SHA-256, producer, task) of a checkpoint, from its JSON (the file was verified against
-    that hash by :func:`~peel_model.checkpoint.load_checkpoint`)."""
+def fast_meta(producer: str, fast: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    """Checkpoint meta that names a fast step inside a peel: who produced it, and the step
+    (``FastResult.identity()`` of model_learner_node.fast_step)."""
+    return {PRODUCER_KEY: producer, FAST_KEY: dict(fast), **extra}
+
+
+def identify(path: str | Path) -> Identity:
+    """(SHA-256, producer, task, fast step) of a checkpoint, from its JSON (the file was
+    verified against that hash by :func:`~peel_model.checkpoint.load_checkpoint`)."""
     cfg = read_checkpoint_config(path)
     meta = cfg.get("meta") or {}
     producer = meta.get(PRODUCER_KEY)
     task = meta.get(TASK_KEY)
+    fast = meta.get(FAST_KEY)
     return (str(cfg["safetensors_sha256"]),
             producer if isinstance(producer, str) else None,
-            task if isinstance(task, int) and not isinstance(task, bool) else None)
+            task if isinstance(task, int) and not isinstance(task, bool) else None,
+            fast if isinstance(fast, dict) else None)
 
 
 @dataclass
@@ -75,13 +90,12 @@ class ModelLedger:
     def latest(self) -> ModelRecord:
         return self.records[-1]
 
-    def accept(self, path: str | Path,
-               identity: tuple[str, str | None, int | None] | None = None) -> ModelRecord:
+    def accept(self, path: str | Path, identity: Identity | None = None) -> ModelRecord:
         """Record an accepted model; returns it with the next version. ``identity``: what
         :func:`identify` returned for ``path`` when the caller read it already."""
-        sha, producer, task = identity if identity is not None else identify(path)
+        sha, producer, task, *fast = identity if identity is not None else identify(path)
         version = self.records[-1].version + 1 if self.records else 0
-        rec = ModelRecord(version, sha, str(path), producer, task)
+        rec = ModelRecord(version, sha, str(path), producer, task, fast[0] if fast else None)
         self.records.append(rec)
         return rec
 

@@ -7,7 +7,10 @@ task k, by identity (docs/graph.md, "The model swap"). No ROS here.
   accepted model): the version the planner allocated (0 = starting model, +1 per accepted swap,
   never taken from a file name; :class:`peel_model.versions.ModelLedger`) and the
   model's identity: SHA-256 of its safetensors file, path, and for an update of Algorithm 1 the
-  ``producer`` (the learner node's name) and ``task`` (1-based) from the checkpoint's meta.
+  ``producer`` (the learner node's name) and ``task`` (1-based) from the checkpoint's meta;
+  for a fast step inside a peel (``model_learner_node.fast_step``) ``task`` is null and
+  ``fast`` names it: ``{"task": k, "step": i, "fit_samples": [0, c], "check_samples": [c, n]}``
+  (the running task k, the i-th fast step in it, the samples it was fitted on and checked on).
 * :class:`UpdateReport` (``/peel/model_update``, published by the learner once per finished
   task): ``swapped`` (the planner accepted it), ``refused`` (the planner's reason), ``failed``
   (Algorithm 1 raised, or its model predicts non-finite forces: never offered), ``skipped``
@@ -65,19 +68,29 @@ class ModelRecord:
     path: str
     producer: str | None = None
     task: int | None = None
+    fast: dict | None = None  # the fast step that made it (module docstring), else None
 
     def __post_init__(self) -> None:
         _check_int("model info", "version", self.version, 0, False)
         _check_int("model info", "task", self.task, 1, True)
         for name in ("sha256", "path", "producer"):
             _check_str("model info", name, getattr(self, name), name == "producer")
+        if self.fast is not None:
+            if not isinstance(self.fast, dict):
+                raise PeelError(f"model info: 'fast' must be an object or null, got {self.fast!r}")
+            _check_int("model info", "fast.task", self.fast.get("task"), 1, False)
+            _check_int("model info", "fast.step", self.fast.get("step"), 1, False)
 
     def is_update(self, producer: str, task: int) -> bool:
         """Whether this is ``producer``'s update after ``task``."""
         return self.producer == producer and self.task == task
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
+        """The JSON of ``/peel/model_info`` (``fast`` only when a fast step made the model)."""
+        obj = asdict(self)
+        if obj["fast"] is None:
+            del obj["fast"]
+        return json.dumps(obj, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> ModelRecord:

@@ -6,15 +6,18 @@
   peel the same substrates with the same noise;
 * :class:`Sample`: one measured state x_k (section 2) in the paper's units, stamped with its
   ROS time: what a plant bridge publishes on ``/peel/wrench``, ``/peel/twist``, ``/peel/pose``
-  and what the planner reassembles from them.
+  and what the planner and the learner reassemble from them (:class:`StateAssembler`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+#: Leftover incomplete samples kept at most (a lost part never completes its sample).
+_MAX_PARTIAL = 50
 #: ``mppi.seed`` is kept below 2**31 (:func:`mppi_seed`).
 MPPI_SEED_RANGE = 2**31
 
@@ -41,3 +44,24 @@ class Sample:
     v_mmps: float
     fx_n: float
     fz_n: float
+
+
+class StateAssembler:
+    """Collects the parts of each stamp; returns the sample when its last part arrives."""
+
+    PARTS = frozenset({"fx_n", "fz_n", "v_mmps", "q_mm"})
+
+    def __init__(self) -> None:
+        self.partial: dict[int, dict[str, Any]] = {}
+
+    def add(self, stamp_ns: int, task: int, **parts: float) -> Sample | None:
+        """Add ``parts`` (some of q_mm, v_mmps, fx_n, fz_n) of the sample ``stamp_ns``."""
+        d = self.partial.setdefault(stamp_ns, {"task": task})
+        d.update(parts)
+        if not d.keys() >= self.PARTS:
+            if len(self.partial) > _MAX_PARTIAL:
+                for key in sorted(self.partial)[: -_MAX_PARTIAL // 2]:
+                    del self.partial[key]
+            return None
+        del self.partial[stamp_ns]
+        return Sample(stamp_ns, d["task"], d["q_mm"], d["v_mmps"], d["fx_n"], d["fz_n"])

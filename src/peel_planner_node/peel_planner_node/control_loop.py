@@ -1,9 +1,9 @@
 """The planner node's work without ROS: assemble state samples from the three state topics and
 run one OL-MPPI cycle at every control instant (docs/graph.md, "Time and lockstep").
 
-* :class:`StateAssembler`: ``/peel/wrench``, ``/peel/twist`` and ``/peel/pose`` arrive as
-  separate messages in any order; a sample is complete when all three parts with the same stamp
-  are in (whichever arrives last completes it).
+* :class:`~peel_msgs_py.task.StateAssembler` (shared with the learner's fast step):
+  ``/peel/wrench``, ``/peel/twist`` and ``/peel/pose`` arrive as separate messages in any order;
+  a sample is complete when all three parts with the same stamp are in.
 * :class:`ControlLoop`: per task (a new ``peel_task_<k>`` frame) a fresh
   :class:`~peel_planner_node.mppi.Planner` with ``mppi.seed`` from ``(seed, k)`` as
   ``peel experiment`` does; at every 5th sample (2 Hz of simulated time) one
@@ -29,16 +29,14 @@ from typing import Any
 import numpy as np
 
 from peel_msgs_py.diagnostics import DurationWindow
-from peel_msgs_py.task import Sample, mppi_seed
+from peel_msgs_py.task import Sample, StateAssembler, mppi_seed
 from peel_msgs_py.trajectory import Trajectory
 
 from .config import PlannerConfig
 from .cost import Cost
 from .mppi import Planner
 
-#: Leftover incomplete samples kept at most (a lost part never completes its sample).
-_MAX_PARTIAL = 50
-
+__all__ = ["Answer", "ControlLoop", "StateAssembler"]
 
 @dataclass(frozen=True)
 class Answer:
@@ -48,27 +46,6 @@ class Answer:
     task: int
     u_mmps: float
     note: str | None = None
-
-
-class StateAssembler:
-    """Collects the parts of each stamp; returns the sample when its last part arrives."""
-
-    PARTS = frozenset({"fx_n", "fz_n", "v_mmps", "q_mm"})
-
-    def __init__(self) -> None:
-        self.partial: dict[int, dict[str, Any]] = {}
-
-    def add(self, stamp_ns: int, task: int, **parts: float) -> Sample | None:
-        """Add ``parts`` (some of q_mm, v_mmps, fx_n, fz_n) of the sample ``stamp_ns``."""
-        d = self.partial.setdefault(stamp_ns, {"task": task})
-        d.update(parts)
-        if not d.keys() >= self.PARTS:
-            if len(self.partial) > _MAX_PARTIAL:
-                for key in sorted(self.partial)[: -_MAX_PARTIAL // 2]:
-                    del self.partial[key]
-            return None
-        del self.partial[stamp_ns]
-        return Sample(stamp_ns, d["task"], d["q_mm"], d["v_mmps"], d["fx_n"], d["fz_n"])
 
 
 class ControlLoop:
