@@ -25,6 +25,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("peel_experiments.bench:main", "benchmarks printing JSON: sim, model, planner, ros, nachi, nachi-graph"),
     "experiment": ("peel_experiments.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
+    "lifecycle": ("peel_bringup.lifecycle_cli:main",
+                  "drive managed nodes: get, set a transition, up (configure + activate)"),
     "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
