@@ -27,6 +27,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
     "lifecycle": ("peel_bringup.lifecycle_cli:main",
                   "drive managed nodes: get, set a transition, up (configure + activate)"),
+    "live": ("peel_bringup.live_node:main",
+             "serve a running graph's live view on a Foxglove WebSocket (127.0.0.1)"),
     "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),

@@ -14,7 +14,8 @@ builds overlap), then one activate per node in the given order (the planner befo
 so the bridge's first sample finds a planner that answers). A refused transition (a failed
 configure: the node's log names why) or a service that does not appear within ``timeout_s``
 ends the sequence with :attr:`Sequence.error`; :attr:`Sequence.failed` names the nodes whose
-configure failed, which ``peel graph`` shuts down (a finalized node exits with its error).
+configure failed, which ``peel graph`` shuts down (a finalized node exits with its error), and
+:attr:`Sequence.late` the others that did not come up.
 """
 
 from __future__ import annotations
@@ -95,6 +96,9 @@ class Sequence:
     timeout_s: float
     error: str | None = None
     failed: list[str] = field(default_factory=list)
+    #: the nodes whose service or answer did not come within ``timeout_s``, or that refused
+    #: a transition other than configure
+    late: list[str] = field(default_factory=list)
     results: list[Step] = field(default_factory=list)
     _since: float | None = None
 
@@ -123,6 +127,7 @@ class Sequence:
         refused = [s for s in wave if s.success is False]
         if refused:
             self.failed = [s.target for s in refused if s.transition == "configure"]
+            self.late = [s.target for s in refused if s.transition != "configure"]
             self.error = "; ".join(_refused(s) for s in refused)
             self.results += wave
             return
@@ -132,7 +137,9 @@ class Sequence:
             return
         assert self._since is not None
         if now - self._since > self.timeout_s:
-            self.error = "; ".join(_late(s, self.timeout_s) for s in wave if s.success is None)
+            late = [s for s in wave if s.success is None]
+            self.late = [s.target for s in late]
+            self.error = "; ".join(_late(s, self.timeout_s) for s in late)
 
 
 def _refused(s: Step) -> str:
@@ -157,3 +164,30 @@ def transitions(lc: Lifecycle, transition: str, targets: Iterable[str],
                 timeout_s: float) -> Sequence:
     """``transition`` on every node of ``targets`` at once."""
     return Sequence(lc, [[Step(t, transition) for t in targets]], timeout_s)
+
+
+class GraphBringUp:
+    """``peel graph``'s manager: :func:`bring_up` of ``targets`` stepped from the launcher's
+    watch loop; a node whose configure failed is then shut down, so that it exits with its
+    error (:meth:`~peel_msgs_py.ros.lifecycle.ManagedNode.exit_error`) and the launcher stops
+    the graph as for any node that died."""
+
+    def __init__(self, node: Node, targets: Iterable[str], timeout_s: float) -> None:
+        self.lc = Lifecycle(node)
+        self.seq = bring_up(self.lc, targets, timeout_s)
+        self.reported = False
+
+    @property
+    def late(self) -> list[str]:
+        """The nodes that did not come up (in time), other than those shut down."""
+        return self.seq.late
+
+    def step(self) -> str | None:
+        """Advance the bring-up; the error line, once, when it failed."""
+        self.seq.step()
+        if self.seq.error is None or self.reported:
+            return None
+        self.reported = True
+        for target in self.seq.failed:
+            self.lc.change(target, "shutdown")
+        return self.seq.error
