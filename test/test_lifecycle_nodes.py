@@ -16,6 +16,7 @@ reaches.
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
@@ -231,8 +232,14 @@ def test_a_failed_configure_leaves_the_node_unconfigured_naming_why(
         (line,) = [ln for ln in bridge_log.splitlines() if "configure failed" in ln]
         assert f"giving up: no controller at 127.0.0.1:{port}" in line
 
-        emu = _emulator(port)  # the controller is there now: configure succeeds
-        assert out.change("peel_nachi_bridge", "configure") is True
+        emu = _emulator(port)  # the controller is there now: configure succeeds (peel lifecycle)
+        res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "lifecycle", "set",
+                              "configure", "peel_nachi_bridge"], env=node_env(),
+                             capture_output=True, text=True, timeout=T)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert json.loads(res.stdout) == {
+            "action": "set", "error": None, "nodes": {"/peel_nachi_bridge": "inactive"},
+            "steps": [{"node": "peel_nachi_bridge", "transition": "configure", "success": True}]}
         assert out.state("peel_nachi_bridge") == "inactive"
         # shut down after its failed configure, the planner exits with that error (exit 2)
         assert out.change("peel_planner_node", "shutdown") is True

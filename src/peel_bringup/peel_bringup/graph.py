@@ -21,7 +21,7 @@ parameters are checked before anything starts (unknown names, types, ranges: one
 refuses its parameters or files anyway (a model with non-finite outputs, too) exits 2, and so
 does the graph. The planner and the bridge are managed nodes started unconfigured (``node.autostart`` false): the
 launcher configures both at once, then activates the planner, then the bridge, through their
-``change_state`` services (:class:`~peel_bringup.lifecycle.GraphBringUp`, docs/graph.md
+``change_state`` services (:class:`~peel_bringup.lifecycle_node.GraphBringUp`, docs/graph.md
 "Lifecycle"); a node whose configure fails is shut down and exits with its error (2 bad input,
 1 no controller), one that does not answer within ``graph.lifecycle_timeout_s`` counts as dead.
 The launcher itself joins the graph as a listener (``peel_graph``:
@@ -102,7 +102,7 @@ EXIT_STATUS = {0: "ok", 1: "a node died", BAD_INPUT: "bad input",
 #: The learner whose updates the launcher (and the simulator: its ``node.learner_node``) waits
 #: for, by its identity on ``/peel/model_info`` (the learner's fully qualified node name).
 LEARNER = "/model_learner_node"
-#: The managed nodes start unconfigured; the launcher drives their transitions (:mod:`.lifecycle`).
+#: The managed nodes start unconfigured; the launcher drives their transitions (:mod:`.lifecycle_node`).
 MANAGED = {"node.autostart": False}
 
 
@@ -588,7 +588,7 @@ class Watch:
 
 def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool, up: Any) -> None:
     """Spin the monitor until the tasks are done, a node dies or the user interrupts; ``up``
-    (:class:`~peel_bringup.lifecycle.GraphBringUp`) configures and activates the managed nodes
+    (:class:`~peel_bringup.lifecycle_node.GraphBringUp`) configures and activates the managed nodes
     meanwhile."""
     from .monitor_node import spin_once
 
@@ -647,7 +647,7 @@ def run_graph(args: argparse.Namespace) -> int:
     env = child_env()
     discovery.confine()  # the launcher's own node too
 
-    from .lifecycle import GraphBringUp
+    from .lifecycle_node import GraphBringUp
     from .monitor_node import close_monitor, open_monitor
 
     mon = open_monitor(LEARNER)

@@ -15,7 +15,8 @@ so the bridge's first sample finds a planner that answers). A refused transition
 configure: the node's log names why) or a service that does not appear within ``timeout_s``
 ends the sequence with :attr:`Sequence.error`; :attr:`Sequence.failed` names the nodes whose
 configure failed, which ``peel graph`` shuts down (a finalized node exits with its error), and
-:attr:`Sequence.late` the others that did not come up.
+:attr:`Sequence.late` the others that did not come up. :func:`drive` is the rclpy side of
+``peel lifecycle`` (:mod:`.lifecycle_cli`).
 """
 
 from __future__ import annotations
@@ -23,13 +24,19 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
+import rclpy
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.client import Client
 from rclpy.node import Node
 from rclpy.task import Future
+from rclpy.utilities import remove_ros_args as _remove_ros_args
 
-from peel_msgs_py.lifecycle import goal_state
+from peel_msgs_py.lifecycle import FINALIZED, goal_state
+
+#: The node name of ``peel lifecycle`` (``peel_lifecycle_manager`` under the launch file).
+NODE_NAME = "peel_lifecycle"
 
 
 def absolute(target: str) -> str:
@@ -191,3 +198,67 @@ class GraphBringUp:
         for target in self.seq.failed:
             self.lc.change(target, "shutdown")
         return self.seq.error
+
+
+# -- peel lifecycle (peel_bringup.lifecycle_cli) ------------------------------------------------
+def remove_ros_args(argv: list[str]) -> list[str]:
+    """``argv`` without the ROS arguments (``--ros-args ...``) ``ros2 launch`` appends."""
+    return _remove_ros_args(["peel", *argv])[1:]
+
+
+def _spin(node: Node, timeout_s: float) -> None:
+    rclpy.spin_once(node, timeout_sec=timeout_s)
+
+
+def spin_until(node: Node, seq: Sequence) -> None:
+    """Spin ``node`` until ``seq`` is done."""
+    while not seq.done:
+        _spin(node, 0.05)
+        seq.step()
+
+
+def states(lc: Lifecycle, nodes: list[str], timeout_s: float) -> dict[str, str]:
+    """Each node's state label by its full name (``unknown``: no answer within ``timeout_s``)."""
+    futures: dict[str, Any] = {}
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for n in nodes:
+            if n not in futures and lc.ready(n):
+                futures[n] = lc.state(n)
+        if len(futures) == len(nodes) and all(f.done() for f in futures.values()):
+            break
+        _spin(lc.node, 0.05)
+    out = {}
+    for n in nodes:
+        f = futures.get(n)
+        result = f.result() if f is not None and f.done() else None
+        out[absolute(n)] = result.current_state.label if result is not None else "unknown"
+    return out
+
+
+def drive(action: str, transition: str | None, nodes: list[str], timeout_s: float,
+          argv: list[str]) -> dict[str, Any]:
+    """``peel lifecycle ACTION``: the transitions asked (``up``: :func:`bring_up`; ``set``:
+    ``transition`` on every node) and every node's state afterwards, as the report it prints."""
+    rclpy.init(args=["peel", *argv])
+    node = rclpy.create_node(NODE_NAME)
+    lc = Lifecycle(node)
+    try:
+        report: dict[str, Any] = {"action": action}
+        gone: list[str] = []
+        if action != "get":
+            assert action == "up" or transition is not None
+            seq = (bring_up(lc, nodes, timeout_s) if action == "up"
+                   else transitions(lc, str(transition), nodes, timeout_s))
+            spin_until(node, seq)
+            report["steps"] = [{"node": s.target, "transition": s.transition,
+                                "success": bool(s.success)} for s in seq.results]
+            report["error"] = seq.error
+            gone = [s.target for s in seq.results if s.transition == "shutdown" and s.success]
+        report["nodes"] = {**states(lc, [n for n in nodes if n not in gone], timeout_s),
+                           **{absolute(n): FINALIZED for n in gone}}  # their processes end
+        return report
+    finally:
+        lc.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
