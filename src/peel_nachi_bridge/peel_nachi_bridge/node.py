@@ -5,11 +5,11 @@ configure checks the parameters, connects to the controller and checks its HELLO
 (:func:`~peel_nachi_bridge.connect.connect_checked`; no controller within
 ``link.configure_timeout_s`` leaves it unconfigured); activate starts the tasks and the
 forwarding; deactivate sends ``STOP`` to a running task and forwards nothing more; cleanup
-closes the link. It stands in for ``peel_sim_node`` in the graph and publishes exactly its topics and trajectory
-message: every controller sample as ``/clock`` + ``/peel/wrench``, ``/peel/twist``,
-``/peel/pose`` (SI, stamped ``task k * node.task_slot_s`` + the controller's t, frame
-``peel_task_<k>``), each finished task on ``/peel/trajectory`` with its outcome; it forwards
-``/peel/cmd_vel`` of the running task to the controller as ``V`` (mm/s on the line:
+closes the link. It stands in for ``peel_sim_node`` in the graph and publishes exactly its
+topics and trajectory message: every controller sample as ``/clock`` + ``/peel/wrench``,
+``/peel/twist``, ``/peel/pose`` (SI, stamped ``task k * node.task_slot_s`` + the controller's t,
+frame ``peel_task_<k>``), each finished task on ``/peel/trajectory`` with its outcome; it
+forwards ``/peel/cmd_vel`` of the running task to the controller as ``V`` (mm/s on the line:
 :mod:`peel_msgs_py.units` converts). The link, its safety rules and the task state machine are
 the ROS-free :class:`~peel_nachi_bridge.bridge.NachiBridge`; which task runs when is
 :class:`~peel_bridge.loop.TaskLoop`, and the publishers, the command subscription and model
@@ -73,9 +73,9 @@ class NachiBridgeNode(NamedRefusals, ManagedNode):
         values = {n: v.value for n, v in self.get_parameters_by_prefix("").items()}
         self.cfg = BridgeConfig.from_params(values)
         self.slot_ns = to_ns(self.cfg.node.task_slot_s)
-        conn = connect_checked(self.cfg.link, self.get_logger().warning)
         self.plant = PlantTopics(self, self.cfg.node.learner_node, self.on_cmd_vel)
         self.loop = TaskLoop(LoopParams.from_params(values), self.on_log)
+        conn = connect_checked(self.cfg.link, self.get_logger().warning)
         self.bridge = NachiBridge(self.cfg.link, self.cfg.safety, self).start(conn)
         self.own(self.create_timer(TICK_S, self.on_tick,
                                    clock=Clock(clock_type=ClockType.STEADY_TIME)))
