@@ -1,6 +1,8 @@
 """The Jazzy launch file, tested without ``launch``/``launch_ros`` (not available as wheels):
 it is run against stand-ins of the launch API that record what it builds, and every executable,
-node name and parameter file it names must exist in the packages (docs/graph.md)."""
+node name and parameter file it names must exist in the packages (docs/graph.md); the managed
+nodes start unconfigured for the lifecycle manager (``peel lifecycle up``), whose failure alone
+ends the launch, and ``live:=PORT`` adds the live view (``peel live``)."""
 
 from __future__ import annotations
 
