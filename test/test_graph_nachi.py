@@ -120,9 +120,11 @@ def _free_port() -> int:
 
 def test_graph_exits_1_naming_the_bridge_when_no_controller_answers(tmp_path: Path,
                                                                      ros_domain: str) -> None:
-    """No controller at the port: the bridge retries with backoff, gives up after
-    ``link.give_up_s`` and exits 1; the graph stops the others and exits 1 naming it."""
-    override = OVERRIDE + "    link:\n      give_up_s: 1.0\n      backoff_max_s: 0.3\n"
+    """No controller at the port: the bridge's configure retries with backoff, gives up after
+    ``link.configure_timeout_s``; the graph shuts it down, it exits 1, and the graph stops the
+    others and exits 1 naming it."""
+    override = OVERRIDE + ("    link:\n      give_up_s: 1.0\n      backoff_max_s: 0.3\n"
+                           "      configure_timeout_s: 1.0\n")
     cmd = _graph(tmp_path, "--nachi-port", str(_free_port()), "--tasks", "1", override=override)
     out = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 1, out.stdout + out.stderr

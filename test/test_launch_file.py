@@ -1,6 +1,8 @@
 """The Jazzy launch file, tested without ``launch``/``launch_ros`` (not available as wheels):
 it is run against stand-ins of the launch API that record what it builds, and every executable,
-node name and parameter file it names must exist in the packages (docs/graph.md)."""
+node name and parameter file it names must exist in the packages (docs/graph.md); the managed
+nodes start unconfigured for the lifecycle manager (``peel lifecycle up``), whose failure alone
+ends the launch, and ``live:=PORT`` adds the live view (``peel live``)."""
 
 from __future__ import annotations
 
@@ -47,10 +49,10 @@ def _console_scripts(pkg: str) -> dict[str, str]:
     return {}
 
 
-@pytest.mark.parametrize(("record", "plant"), [("", "sim"), ("/tmp/bag", "plant"),
-                                               ("/tmp/bag", "nachi")])
-def test_launch_file_names_existing_executables_nodes_and_files(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str, plant: str) -> None:
+def _actions(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **given: str) -> tuple[
+        dict[str, str], list]:
+    """The declared arguments (name -> default) and the actions the launch file builds for
+    ``given`` launch arguments."""
     share = tmp_path / "share"
     (share / "peel_bringup").mkdir(parents=True)
     (share / "peel_bringup" / "config").symlink_to(ROOT / "config")
@@ -62,19 +64,30 @@ def test_launch_file_names_existing_executables_nodes_and_files(
     desc = launch.generate_launch_description()
     declared = {a.args[0]: a.kwargs.get("default_value") for a in desc.args[0]
                 if type(a).__name__ == "DeclareLaunchArgument"}
-    assert set(declared) == {"plant", "tasks", "seed", "params", "record", "out", "nachi_host",
-                             "nachi_port"}
     (opaque,) = [a for a in desc.args[0] if type(a).__name__ == "OpaqueFunction"]
-    given = {"record": record, "plant": plant}
+    context = types.SimpleNamespace(launch_configurations={**declared, **given})
+    return declared, opaque.kwargs["function"](context)
+
+
+@pytest.mark.parametrize(("record", "plant", "live"), [("", "sim", ""), ("/tmp/bag", "plant", ""),
+                                                       ("/tmp/bag", "nachi", ""),
+                                                       ("", "sim", "8771")])
+def test_launch_file_names_existing_executables_nodes_and_files(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str, plant: str,
+        live: str) -> None:
+    given = {"record": record, "plant": plant, "live": live}
     if plant == "nachi":
         given.update(nachi_host="10.0.0.5", nachi_port="48113")
-    context = types.SimpleNamespace(launch_configurations={**declared, **given})
-    actions = opaque.kwargs["function"](context)
+    declared, actions = _actions(tmp_path, monkeypatch, **given)
+    assert set(declared) == {"plant", "tasks", "seed", "params", "record", "out", "nachi_host",
+                             "nachi_port", "live", "live_host"}
+    assert (declared["live"], declared["live_host"]) == ("", "127.0.0.1")
     nodes = [a for a in actions if type(a).__name__ == "Node"]
     names = {n.kwargs["name"] for n in nodes}
     bridge = "peel_nachi_bridge" if plant == "nachi" else "peel_sim_node"
-    assert names == {bridge, "peel_planner_node", "model_learner_node"} | (
-        {"peel_recorder"} if record else set())
+    tools = {"peel_lifecycle_manager"} | ({"peel_recorder"} if record else set()) | (
+        {"peel_live"} if live else set())
+    assert names == {bridge, "peel_planner_node", "model_learner_node"} | tools
 
     from peel_msgs_py.params import load_param_file, registered_nodes
 
@@ -86,6 +99,12 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         if name == "peel_recorder":
             assert node.kwargs["arguments"] == ["--out", record, "--await-publishers", "10"]
             continue
+        if name == "peel_lifecycle_manager":  # planner first, the bridge last
+            assert node.kwargs["arguments"] == ["lifecycle", "up", "peel_planner_node", bridge]
+            continue
+        if name == "peel_live":
+            assert node.kwargs["arguments"] == ["live", "--port", live, "--host", "127.0.0.1"]
+            continue
         assert name in registered_nodes()  # a node whose parameters are registered
         files = [p for p in node.kwargs["parameters"] if isinstance(p, str)]
         assert files and all(Path(f).is_file() for f in files)
@@ -95,9 +114,48 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         assert overrides["use_sim_time"] is True
         if name == bridge:  # the state's publisher runs the K tasks and ends the launch
             assert overrides["node.tasks"] == 3 and overrides["node.exit_when_done"] is True
+        readers = 1 + bool(record) + bool(live)  # the recorder and the live view count
+        if name == bridge:
+            assert overrides["node.min_subscribers"] == readers
+        if name == "peel_planner_node":
+            assert overrides["node.min_cmd_subscribers"] == readers
+        # the managed nodes wait unconfigured for the manager
+        assert overrides.get("node.autostart") is (False if name in (bridge, "peel_planner_node")
+                                                   else None)
         if name == "peel_nachi_bridge":
             assert (overrides["link.host"], overrides["link.port"]) == ("10.0.0.5", 48113)
         known = {s.name for s in importlib.import_module(f"{name}.parameters").SPECS}
         assert set(overrides) <= known, set(overrides) - known
     handlers = [a for a in actions if type(a).__name__ == "RegisterEventHandler"]
-    assert len(handlers) == 3  # any node's exit ends the launch
+    assert len(handlers) == 4  # any node's exit ends the launch, and the manager's failure
+
+
+def test_the_managers_failure_ends_the_launch_and_its_arguments_parse(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The manager's exit handler shuts the launch down on a non-zero status only; the
+    arguments given to ``peel lifecycle`` and ``peel live`` (with the ROS arguments launch
+    appends) parse as those commands parse them."""
+    _, actions = _actions(tmp_path, monkeypatch, live="8772", live_host="127.0.0.2")
+    nodes = {a.kwargs["name"]: a for a in actions if type(a).__name__ == "Node"}
+    manager = nodes["peel_lifecycle_manager"]
+    (handler,) = [a.args[0] for a in actions if type(a).__name__ == "RegisterEventHandler"
+                  and a.args[0].kwargs["target_action"] is manager]
+    on_exit = handler.kwargs["on_exit"]
+    assert on_exit(types.SimpleNamespace(returncode=0), None) == []
+    (emit,) = on_exit(types.SimpleNamespace(returncode=1), None)
+    assert type(emit.kwargs["event"]).__name__ == "Shutdown"
+
+    from rclpy.utilities import remove_ros_args
+
+    from peel_bringup import cli, lifecycle_cli, live_node
+
+    ros = ["--ros-args", "-r", "__node:=x"]
+    for node, parser in ((manager, lifecycle_cli._parser()), (nodes["peel_live"],
+                                                             live_node._parser())):
+        command, *rest = node.kwargs["arguments"]
+        assert command in cli.SUBCOMMANDS
+        parsed = parser.parse_args(remove_ros_args(["peel", *rest, *ros])[1:])
+        if command == "live":
+            assert (parsed.port, parsed.host) == (8772, "127.0.0.2")
+        else:
+            assert (parsed.action, parsed.nodes) == ("up", ["peel_planner_node", "peel_sim_node"])

@@ -1,8 +1,8 @@
 """The rclpy side both plant bridge nodes share (docs/graph.md): publishers, model following and
 per-sample publishing.
 
-:class:`PlantTopics` is created by ``peel_sim_node`` and ``peel_nachi_bridge`` in their
-``__init__``; it holds
+:class:`PlantTopics` is created by ``peel_sim_node`` and ``peel_nachi_bridge`` when they are
+configured (and destroyed, :meth:`PlantTopics.destroy`, at their cleanup); it holds
 
 * the publishers of a plant: ``/clock`` and the measured state of every sample on
   ``/peel/wrench``, ``/peel/twist``, ``/peel/pose`` (SI, REP-103; stamped with the sample's ROS
@@ -59,14 +59,15 @@ class PlantTopics:
         self.pub_pose = node.create_publisher(PoseStamped, topics.POSE, qos(topics.POSE))
         self.pub_traj = node.create_publisher(Float64MultiArray, topics.TRAJECTORY,
                                               qos(topics.TRAJECTORY))
-        node.create_subscription(TwistStamped, topics.CMD_VEL, on_cmd,
-                                 qos(topics.CMD_VEL, subscriber=True))
-        node.create_subscription(String, topics.MODEL_INFO, self.on_model_info,
-                                 to_profile(topics.topic(topics.MODEL_INFO).sub_qos))
-        node.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
-                                 to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos))
-        node.create_subscription(String, topics.PLANNER_SAFETY, self.on_planner_safety,
-                                 qos(topics.PLANNER_SAFETY, subscriber=True))
+        self.subs = [
+            node.create_subscription(TwistStamped, topics.CMD_VEL, on_cmd,
+                                     qos(topics.CMD_VEL, subscriber=True)),
+            node.create_subscription(String, topics.MODEL_INFO, self.on_model_info,
+                                     to_profile(topics.topic(topics.MODEL_INFO).sub_qos)),
+            node.create_subscription(String, topics.MODEL_UPDATE, self.on_model_update,
+                                     to_profile(topics.topic(topics.MODEL_UPDATE).sub_qos)),
+            node.create_subscription(String, topics.PLANNER_SAFETY, self.on_planner_safety,
+                                     qos(topics.PLANNER_SAFETY, subscriber=True))]
         #: task index -> the planner's last guard report of that task (``/peel/planner_safety``)
         self.guard_reports: dict[int, dict[str, Any]] = {}
         self.updates = UpdateWait(learner_node)
@@ -75,6 +76,14 @@ class PlantTopics:
         self.versions_seen: set[int] = set()
         self.records: dict[int, ModelRecord] = {}
         self.version_at_start: dict[int, int | None] = {}
+
+    def destroy(self) -> None:
+        """Destroy the publishers and subscriptions (the managed bridge's cleanup)."""
+        for pub in (self.pub_clock, self.pub_wrench, self.pub_twist, self.pub_pose,
+                    self.pub_traj):
+            self.node.destroy_publisher(pub)
+        for sub in self.subs:
+            self.node.destroy_subscription(sub)
 
     # -- model following ------------------------------------------------------------------
     def on_model_info(self, msg: String) -> None:

@@ -6,6 +6,7 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
         params:=/path/override.yaml record:=/path/bag out:=runs/launch
     ros2 launch peel_bringup peel_graph.launch.py plant:=nachi nachi_host:=192.168.0.20 \\
         nachi_port:=48100 tasks:=3
+    ros2 launch peel_bringup peel_graph.launch.py live:=8765    # + the Foxglove live view
 
 * ``plant:=nachi`` starts the bridge to the Nachi robot controller (``peel_nachi_bridge``,
   docs/nachi.md) in the simulator's place, at ``nachi_host:nachi_port`` (empty: the
@@ -13,6 +14,15 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
   goes to the planner only;
 * every node gets ``share/peel_bringup/config/<node>.yaml``, then the override file (if any),
   then ``use_sim_time: true`` and the settings below;
+* the planner and the bridge are managed nodes started unconfigured (``node.autostart: false``);
+  our lifecycle manager (``peel lifecycle up``, node ``peel_lifecycle_manager``) configures both,
+  then activates the planner, then the bridge, through their ``change_state`` services, and
+  exits; a configure that fails (the node stays unconfigured, its log says why) or a node that
+  does not answer within ``graph.lifecycle_timeout_s`` makes it exit 1, which shuts the launch
+  down;
+* ``live:=PORT`` adds the live view (``peel live``, node ``peel_live``: the running graph on a
+  Foxglove WebSocket at ``ws://live_host:PORT``, ``live_host`` default 127.0.0.1, as
+  ``peel graph --live PORT``); it counts among the readers the bridge and the planner wait for;
 * ``record:=BAG`` adds the recorder (``ros2 run peel_bag peel_recorder --out BAG``, the
   same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
 * the simulator (or the bridge) exits after the K tasks and the learner's last swap
@@ -34,13 +44,23 @@ from launch_ros.actions import Node
 
 NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
 NACHI = "peel_nachi_bridge"
+#: The nodes our lifecycle manager brings up, in the order they are activated (the bridge last).
+MANAGED = ("peel_planner_node",)
+MANAGER = "peel_lifecycle_manager"
+LIVE = "peel_live"
+
+
+def _tools(arg: dict) -> int:
+    """Readers besides the graph's own that the bridge and the planner wait for."""
+    return int(bool(arg["record"])) + int(bool(arg["live"]))
 
 
 def _bridge(arg: dict) -> tuple[str, dict]:
     """The node that publishes the state (simulator or Nachi bridge) and its settings."""
-    readers = {"node.min_subscribers": 2 if arg["record"] else 1,
-               "node.min_traj_subscribers": 2 if arg["record"] else 1}
-    common = {"node.tasks": int(arg["tasks"]), "node.exit_when_done": True, **readers}
+    readers = {"node.min_subscribers": 1 + _tools(arg),
+               "node.min_traj_subscribers": 1 + _tools(arg)}
+    common = {"node.tasks": int(arg["tasks"]), "node.exit_when_done": True,
+              "node.autostart": False, **readers}
     if arg["plant"] != "nachi":
         return "peel_sim_node", {"node.source": arg["plant"], "node.seed": int(arg["seed"]),
                                  **common}
@@ -55,14 +75,15 @@ def _bridge(arg: dict) -> tuple[str, dict]:
 def _setup(context, *args, **kwargs):
     cfg = os.path.join(get_package_share_directory("peel_bringup"), "config")
     arg = {name: context.launch_configurations[name] for name in (
-        "plant", "tasks", "seed", "params", "record", "out", "nachi_host", "nachi_port")}
+        "plant", "tasks", "seed", "params", "record", "out", "nachi_host", "nachi_port", "live",
+        "live_host")}
     override = [arg["params"]] if arg["params"] else []
     models = os.path.abspath(os.path.join(arg["out"], "models"))
     bridge, settings = _bridge(arg)
     extra = {
         bridge: settings,
-        "peel_planner_node": {"node.seed": int(arg["seed"]),
-                              "node.min_cmd_subscribers": 2 if arg["record"] else 1},
+        "peel_planner_node": {"node.seed": int(arg["seed"]), "node.autostart": False,
+                              "node.min_cmd_subscribers": 1 + _tools(arg)},
         "model_learner_node": {"node.out_dir": models},
     }
     actions = []
@@ -74,6 +95,9 @@ def _setup(context, *args, **kwargs):
                         {"use_sim_time": True, **extra[name]}],
         )
         actions.append(nodes[name])
+    actions += _manager([*MANAGED, bridge])
+    if arg["live"]:
+        actions.insert(0, _live(arg, override))
     if arg["record"]:
         actions.insert(0, Node(package="peel_bag", executable="peel_recorder",
                                name="peel_recorder", output="screen", sigterm_timeout="20",
@@ -84,6 +108,28 @@ def _setup(context, *args, **kwargs):
             target_action=nodes[name],
             on_exit=[EmitEvent(event=Shutdown(reason=f"{name} exited"))])))
     return actions
+
+
+def _manager(managed: list[str]) -> list:
+    """``peel lifecycle up`` of the managed nodes; its failure ends the launch."""
+    manager = Node(package="peel_bringup", executable="peel", name=MANAGER, output="screen",
+                   arguments=["lifecycle", "up", *managed])
+
+    def failed(event, context):
+        if event.returncode != 0:
+            return [EmitEvent(event=Shutdown(reason=f"{MANAGER}: the managed nodes did not "
+                                                    f"come up (exit {event.returncode})"))]
+        return []
+
+    return [manager, RegisterEventHandler(OnProcessExit(target_action=manager, on_exit=failed))]
+
+
+def _live(arg: dict, override: list[str]) -> Node:
+    """``peel live --port PORT --host HOST [--params FILE]``: the Foxglove live view."""
+    extra = ["--params", os.path.abspath(override[0])] if override else []
+    return Node(package="peel_bringup", executable="peel", name=LIVE, output="screen",
+                arguments=["live", "--port", str(int(arg["live"])), "--host", arg["live_host"],
+                           *extra])
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -105,5 +151,11 @@ def generate_launch_description() -> LaunchDescription:
                               description="bag directory to record to (empty: no bag)"),
         DeclareLaunchArgument("out", default_value="runs/launch",
                               description="directory for the learner's model_vNNNN files"),
+        DeclareLaunchArgument("live", default_value="",
+                              description="port of the Foxglove live view, as peel graph --live "
+                                          "PORT (empty: no live view; 8765 is Foxglove's)"),
+        DeclareLaunchArgument("live_host", default_value="127.0.0.1",
+                              description="address the live view binds (default: this machine "
+                                          "only)"),
         OpaqueFunction(function=_setup),
     ])

@@ -19,7 +19,12 @@ names are imported before anything starts. ``--live [PORT]`` adds the live view
 free before anything starts; without ``--live`` nothing imports the Foxglove SDK. Every node's
 parameters are checked before anything starts (unknown names, types, ranges: one line, exit 2); a node that
 refuses its parameters or files anyway (a model with non-finite outputs, too) exits 2, and so
-does the graph. The launcher itself joins the graph as a listener (``peel_graph``:
+does the graph. The planner and the bridge are managed nodes started unconfigured (``node.autostart`` false): the
+launcher configures both at once, then activates the planner, then the bridge, through their
+``change_state`` services (:class:`~peel_bringup.lifecycle_node.GraphBringUp`, docs/graph.md
+"Lifecycle"); a node whose configure fails is shut down and exits with its error (2 bad input,
+1 no controller), one that does not answer within ``graph.lifecycle_timeout_s`` counts as dead.
+The launcher itself joins the graph as a listener (``peel_graph``:
 ``/peel/trajectory``, ``/peel/model_version``, ``/peel/model_info``, ``/peel/model_update``) and
 prints one line per finished task: outcome, T_cpl, J (Eq. 3,
 :func:`peel_planner_node.cost.episode_cost`) and the model version the task ran with; and one
@@ -101,6 +106,8 @@ EXIT_STATUS = {0: "ok", 1: "a node died", BAD_INPUT: "bad input",
 #: The learner whose updates the launcher (and the simulator: its ``node.learner_node``) waits
 #: for, by its identity on ``/peel/model_info`` (the learner's fully qualified node name).
 LEARNER = "/model_learner_node"
+#: The managed nodes start unconfigured; the launcher drives their transitions (:mod:`.lifecycle_node`).
+MANAGED = {"node.autostart": False}
 
 
 def graph_params(override: str | None) -> dict[str, Any]:
@@ -169,16 +176,16 @@ def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: b
                "node.min_traj_subscribers": 2 + tools}  # learner, launcher (+ ...)
     if plant == "nachi":  # the substrates and the plant are the controller's
         bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers,
-                          "node.learner_node": LEARNER, **(link or {})}}
+                          "node.learner_node": LEARNER, **MANAGED, **(link or {})}}
     else:
         bridge = {"peel_sim_node": {"use_sim_time": True, "node.source": plant,
                                     "node.tasks": tasks, "node.seed": seed, **readers,
-                                    "node.learner_node": LEARNER}}
+                                    "node.learner_node": LEARNER, **MANAGED}}
         if effects:
             bridge["peel_sim_node"]["node.effects"] = list(effects)
     return {
         **bridge,
-        "peel_planner_node": {"use_sim_time": True, "node.seed": seed,
+        "peel_planner_node": {"use_sim_time": True, "node.seed": seed, **MANAGED,
                               "node.min_cmd_subscribers": 1 + tools},  # bridge (+ rec., live)
         "model_learner_node": {
             "use_sim_time": True, "node.out_dir": str((run_dir / "models").resolve()),
@@ -459,6 +466,11 @@ def children_of(run: Run) -> list[Child]:
     return children
 
 
+def managed_nodes(run: Run) -> list[str]:
+    """The managed nodes in the order they are activated: the planner, then the bridge."""
+    return ["peel_planner_node", NACHI if run.plant == "nachi" else "peel_sim_node"]
+
+
 def child_env() -> dict[str, str]:
     """The nodes' environment: this one, confined to the machine unless the user opened it."""
     env = dict(os.environ)
@@ -589,12 +601,17 @@ def last_update_in(updates: UpdateWait, task: int) -> bool:
     return rep.status != SWAPPED or (outcome is not None and outcome.version is not None)
 
 
-def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool) -> None:
-    """Spin the monitor until the tasks are done, a node dies or the user interrupts."""
+def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool, up: Any) -> None:
+    """Spin the monitor until the tasks are done, a node dies or the user interrupts; ``up``
+    (:class:`~peel_bringup.lifecycle_node.GraphBringUp`) configures and activates the managed nodes
+    meanwhile."""
     from .monitor_node import spin_once
 
     while True:
         spin_once(mon, 0.1)
+        if (error := up.step()) is not None:
+            print(f"peel graph: error: {error}", file=sys.stderr, flush=True)
+            w.dead += up.late  # never came up: stopped as dead nodes are
         w.report_tasks(mon)
         if stop.signum is not None:
             print("peel graph: interrupted; stopping the nodes", file=sys.stderr, flush=True)
@@ -644,6 +661,7 @@ def run_graph(args: argparse.Namespace) -> int:
     env = child_env()
     discovery.confine()  # the launcher's own node too
 
+    from .lifecycle_node import GraphBringUp
     from .monitor_node import close_monitor, open_monitor
 
     mon = open_monitor(LEARNER)
@@ -665,7 +683,8 @@ def run_graph(args: argparse.Namespace) -> int:
         if run.live is not None:
             print(f"peel graph: live view on ws://{run.live[0]}:{run.live[1]} (Foxglove: Open "
                   f"connection; layout config/foxglove/peel_layout.json)", flush=True)
-        watch(w, mon, stop, args.keep_going)
+        up = GraphBringUp(mon, managed_nodes(run), run.gp["graph.lifecycle_timeout_s"])
+        watch(w, mon, stop, args.keep_going, up)
     finally:
         stop.restore()
         w.check_recorder(tear_down(children, run.gp["graph.stop_timeout_s"]))

@@ -172,7 +172,10 @@ def _parser() -> ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Serve the live view until SIGINT / SIGTERM; returns the exit status."""
-    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    from rclpy.utilities import remove_ros_args
+
+    given = list(sys.argv[1:] if argv is None else argv)
+    args = _parser().parse_args(remove_ros_args([NODE_NAME, *given])[1:])  # ros2 launch adds some
     try:
         server = foxglove.start_server(name="peel", host=args.host, port=args.port)
     except Exception as exc:  # the SDK raises its own error types for a port in use

@@ -24,6 +24,10 @@ GRAPH_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("graph.alone_wait_s", float, 5.0,
               "wall s of DDS discovery before the start, looking for another peel graph on "
               "the ROS domain (found: refused, exit 5)", min=0.0),
+    ParamSpec("graph.lifecycle_timeout_s", float, 180.0,
+              "wall s for a managed node's change_state service to appear and answer "
+              "(configure loads the model, builds the simulator, connects the controller)",
+              min=1.0, max=3600.0),
 )
 
 

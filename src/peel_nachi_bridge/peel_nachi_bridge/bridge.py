@@ -87,6 +87,7 @@ class NachiBridge:
         self._conn: Connection | None = None
         self._task: TaskRecorder | None = None
         self._pending: int | None = None
+        self._stop_asked: str | None = None  # stop_task(): STOP the task once it runs
         self._starting: int | None = None
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
@@ -109,7 +110,10 @@ class NachiBridge:
         conn = self._conn
         return conn.hello.controller_id if conn else None
 
-    def start(self) -> NachiBridge:
+    def start(self, conn: Connection | None = None) -> NachiBridge:
+        """Start the thread, serving ``conn`` (connected, HELLO checked) if given."""
+        if conn is not None:
+            self._adopt(conn)
         self._thread = threading.Thread(target=self._run, name="nachi-bridge", daemon=True)
         self._thread.start()
         return self
@@ -124,6 +128,12 @@ class NachiBridge:
         """Run task ``index`` as soon as the link is idle (``START``)."""
         with self._lock:
             self._pending = index
+
+    def stop_task(self, reason: str) -> None:
+        """Drop a requested task and ``STOP`` a starting or running one (it ends ``aborted``
+        with ``reason``), from the link's thread."""
+        with self._lock:
+            self._pending, self._stop_asked = None, reason
 
     @property
     def busy(self) -> bool:
@@ -196,6 +206,11 @@ class NachiBridge:
         except LinkError as exc:
             self._connect_failed(str(exc))
             return
+        self._adopt(conn)
+
+    def _adopt(self, conn: Connection) -> None:
+        """Serve ``conn`` (HELLO checked) from now on."""
+        lk = self.link
         failures = self.stats.connect_failures
         with self._lock:
             self._conn, self._state = conn, IDLE
@@ -220,6 +235,10 @@ class NachiBridge:
 
     def _serve_once(self) -> None:
         now = time.monotonic()
+        if self._stop_asked is not None and self._state in (RUNNING, IDLE, DISCONNECTED):
+            with self._lock:
+                reason, self._stop_asked = self._stop_asked, None
+            self._stop_task("aborted", reason, f"{reason}: the task is stopped")
         if self._state == IDLE:
             self._idle_duties(now)
         conn = self._conn

@@ -37,6 +37,7 @@ class LinkParams:
     backoff_max_s: float
     backoff_factor: float
     give_up_s: float
+    configure_timeout_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,7 @@ class NodeParams:
     min_traj_subscribers: int
     learner_node: str
     exit_when_done: bool
+    autostart: bool = True
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ run time: the link and the task sequence are fixed when the node starts. The phy
 from __future__ import annotations
 
 from peel_bridge.parameters import LOOP_SPECS
+from peel_msgs_py.lifecycle import AUTOSTART
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 from peel_msgs_py.wire import speed_limit_specs
 
@@ -34,6 +35,9 @@ LINK_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("link.give_up_s", float, 0.0,
               "wall s without a controller (while a task waits) before the node exits 1; "
               "0 = never", min=0.0),
+    ParamSpec("link.configure_timeout_s", float, 10.0,
+              "wall s configure tries to connect and check HELLO (with the backoff) before "
+              "it fails and the node stays unconfigured", min=0.01, max=3600.0),
 )
 
 #: ``safety:``: the link's safety rules (docs/nachi.md, "Safety of the link").
@@ -51,7 +55,7 @@ SAFETY_SPECS: tuple[ParamSpec, ...] = (
 )
 
 #: ``node:``: the task sequence, as peel_sim_node's (:data:`peel_bridge.parameters.LOOP_SPECS`).
-NODE_SPECS: tuple[ParamSpec, ...] = LOOP_SPECS
+NODE_SPECS: tuple[ParamSpec, ...] = (*LOOP_SPECS, AUTOSTART)
 
 #: The groups of the bridge's own parameters.
 GROUPS = ("link", "safety", "node")

@@ -20,6 +20,7 @@ reason              outcome          when
 ``connection_lost`` ``aborted``      the link broke during the task
 ``stopped``         ``aborted``      ``DONE stopped`` that the bridge did not ask for
 ``shutdown``        ``aborted``      the bridge itself was stopped during the task
+``deactivated``     ``aborted``      the bridge was deactivated (lifecycle) during the task: STOP
 ==================  ===============  ==========================================================
 """
 

@@ -1,6 +1,9 @@
 """``peel_planner_node``: OL-MPPI as a ROS 2 node (docs/graph.md).
 
-Subscribes the measured state (``/peel/wrench``, ``/peel/twist``, ``/peel/pose``, SI), plans
+A managed node (:class:`~peel_msgs_py.ros.lifecycle.ManagedNode`, docs/graph.md "Lifecycle"):
+configure checks the parameters and loads, probes and warms up the model; activate lets it plan
+and publish; deactivate stops both; cleanup drops the model and the topics. While active it
+subscribes the measured state (``/peel/wrench``, ``/peel/twist``, ``/peel/pose``, SI), plans
 once per control period of ROS time (:class:`~peel_planner_node.control_loop.ControlLoop`,
 Algorithm 2) and publishes ``/peel/cmd_vel`` stamped with the sample it answers (lockstep).
 Holds the forward model; the model swap is its standard parameter service: setting
@@ -28,7 +31,6 @@ import torch
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Int64, String
 
@@ -36,7 +38,9 @@ from peel_model.versions import ModelLedger
 from peel_msgs_py import codec, topics
 from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.lifecycle import AUTOSTART, ConfigureError
 from peel_msgs_py.ros.diagnostics import publish_diagnostics
+from peel_msgs_py.ros.lifecycle import ManagedNode
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp, stamp_ns
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
@@ -55,12 +59,25 @@ WIRE_FIELD = {"fx_n": "wrench.force.x", "fz_n": "wrench.force.z", "v_mmps": "twi
               "q_mm": "pose.position.x"}
 
 
-class PlannerNode(NamedRefusals, Node):
-    """Subscriptions, the command publisher and the model swap around a :class:`ControlLoop`."""
+class PlannerNode(NamedRefusals, ManagedNode):
+    """Subscriptions, the command publisher and the model swap around a :class:`ControlLoop`,
+    as a managed node: configure loads and warms up the model, activate starts the commands
+    (docs/graph.md "Lifecycle")."""
 
     def __init__(self) -> None:
         super().__init__(NODE_NAME)
         self.values = declare(self, SPECS)
+        self.loop: ControlLoop | None = None  # None while unconfigured
+        self.refusal: str | None = None  # the last model swap's refusal, until one is accepted
+        self.refusals = 0
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+        publish_diagnostics(self, self.diagnostics)
+        self.autostart(self.values[AUTOSTART.name])
+
+    def setup(self) -> None:
+        """configure: the parameters checked, the model loaded, probed and warmed up, the
+        topics made."""
+        self.values = {n: p.value for n, p in self.get_parameters_by_prefix("").items()}
         torch.set_num_threads(self.values["node.threads"])
         self.cfg = PlannerConfig.from_params(self.values)
         self.dt_s = float(self.cfg.cost.dt_s)
@@ -69,36 +86,44 @@ class PlannerNode(NamedRefusals, Node):
             pred = validate_model(path, None, self.values["node.probe_batch"], None)
             self.ledger = ModelLedger.start(path)  # version 0
         except PeelError as exc:
-            raise PeelError(f"parameter '{MODEL_PATH}': {exc}") from None
+            raise ConfigureError(f"parameter '{MODEL_PATH}': {exc}") from None
         self.h = int(pred.h)
-        self.loop = ControlLoop(self.cfg, learned_dynamics(pred, self.cfg.dynamics),
-                                self.values["node.seed"])
-        warm_s = self.loop.warm_up(self.h)
+        loop = ControlLoop(self.cfg, learned_dynamics(pred, self.cfg.dynamics),
+                           self.values["node.seed"])
+        warm_s = loop.warm_up(self.h)
         self.parts = StateAssembler()
         self.drops = DropLog()
         qos = topics.qos_profile
-        self.pub_cmd = self.create_publisher(TwistStamped, topics.CMD_VEL, qos(topics.CMD_VEL))
-        self.pub_version = self.create_publisher(Int64, topics.MODEL_VERSION,
-                                                 qos(topics.MODEL_VERSION))
-        self.pub_info = self.create_publisher(String, topics.MODEL_INFO, qos(topics.MODEL_INFO))
-        self.pub_safety = self.create_publisher(String, topics.PLANNER_SAFETY,
-                                                qos(topics.PLANNER_SAFETY))
-        self.create_subscription(WrenchStamped, topics.WRENCH, self.on_wrench,
-                                 qos(topics.WRENCH, subscriber=True))
-        self.create_subscription(TwistStamped, topics.TWIST, self.on_twist,
-                                 qos(topics.TWIST, subscriber=True))
-        self.create_subscription(PoseStamped, topics.POSE, self.on_pose,
-                                 qos(topics.POSE, subscriber=True))
-        self.add_on_set_parameters_callback(self.on_set_parameters)
-        self.refusal: str | None = None  # the last model swap's refusal, until one is accepted
-        self.refusals = 0
-        publish_diagnostics(self, self.diagnostics)
-        self.waiting_since = time.monotonic()
-        self.announcer = self.create_timer(0.05, self.announce,
-                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.pub_cmd = self.own(self.create_lifecycle_publisher(TwistStamped, topics.CMD_VEL,
+                                                                qos(topics.CMD_VEL)))
+        self.pub_version = self.own(self.create_publisher(Int64, topics.MODEL_VERSION,
+                                                          qos(topics.MODEL_VERSION)))
+        self.pub_info = self.own(self.create_publisher(String, topics.MODEL_INFO,
+                                                       qos(topics.MODEL_INFO)))
+        self.pub_safety = self.own(self.create_publisher(String, topics.PLANNER_SAFETY,
+                                                         qos(topics.PLANNER_SAFETY)))
+        for kind, name, callback in ((WrenchStamped, topics.WRENCH, self.on_wrench),
+                                     (TwistStamped, topics.TWIST, self.on_twist),
+                                     (PoseStamped, topics.POSE, self.on_pose)):
+            self.own(self.create_subscription(kind, name, callback, qos(name, subscriber=True)))
+        self.loop = loop
         self.get_logger().info(f"planner ready: model v{self.version} ({path.name}), "
                                f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}, "
-                               f"{self.loop.planner.dynamics.describe()}; warm-up plan {warm_s * 1e3:.0f} ms")
+                               f"{loop.planner.dynamics.describe()}; warm-up plan {warm_s * 1e3:.0f} ms")
+
+    def start(self) -> None:
+        """activate: announce the model once the command's readers are matched; plan."""
+        self.waiting_since = time.monotonic()
+        self.announcer = self.own(self.create_timer(
+            0.05, self.announce, clock=Clock(clock_type=ClockType.STEADY_TIME)))
+
+    def stop(self) -> None:
+        """deactivate: no more commands (the lifecycle publisher is disabled, no plan runs)."""
+        self.announcer.cancel()
+
+    def release(self) -> None:
+        """cleanup / shutdown: the model and the control loop go (the topics with :meth:`own`)."""
+        self.loop = None
 
     def announce(self) -> None:
         """Publish the model version once the command's readers are matched: the simulator
@@ -110,8 +135,7 @@ class PlannerNode(NamedRefusals, Node):
             return
         if self.pub_cmd.get_subscription_count() < want:
             self.get_logger().warn(f"fewer than {want} readers of {topics.CMD_VEL}; going on")
-        self.announcer.cancel()
-        self.destroy_timer(self.announcer)
+        self.announcer.cancel()  # destroyed at the release (own)
         self.publish_version()
         self.get_logger().info(f"model v{self.version} announced after {waited:.2f} s "
                                f"({self.pub_cmd.get_subscription_count()} readers of "
@@ -128,14 +152,22 @@ class PlannerNode(NamedRefusals, Node):
         self.pub_info.publish(String(data=self.ledger.latest.to_json()))
 
     def diagnostics(self) -> list[Status]:
-        """The planner's health (:func:`~peel_planner_node.health.planner_status`), 1 Hz."""
-        return [planner_status(self.loop.latency, self.cfg, self.ledger.latest, self.refusal,
-                               self.refusals, peak_force(self.loop.rows), self.loop.margin_n,
-                               plan_costs(self.loop.planner.last))]
+        """The planner's health (:func:`~peel_planner_node.health.planner_status`), 1 Hz;
+        the lifecycle state while not active."""
+        if self.loop is None:
+            return self.lifecycle_status()
+        loop = self.loop
+        return [*self.lifecycle_status(),
+                planner_status(loop.latency, self.cfg, self.ledger.latest, self.refusal,
+                               self.refusals, peak_force(loop.rows), loop.margin_n,
+                               plan_costs(loop.planner.last))]
 
     # -- state -------------------------------------------------------------------------------
     def on_part(self, msg: Any, topic: str, **parts: float) -> None:
-        """One part of a state sample; a part with a non-finite value is dropped here."""
+        """One part of a state sample; a part with a non-finite value is dropped here. An
+        inactive planner plans nothing."""
+        if not self.active or self.loop is None:
+            return
         bad = next((k for k, v in parts.items() if not math.isfinite(v)), None)
         if bad is not None:
             line = self.drops.drop(topic, WIRE_FIELD[bad], f"is not finite ({parts[bad]!r})")
@@ -177,7 +209,10 @@ class PlannerNode(NamedRefusals, Node):
 
     # -- parameters: the model swap and the run-time settings -----------------------------------
     def on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        """Validate before anything changes; refuse with the reason (the old values stay)."""
+        """Validate before anything changes; refuse with the reason (the old values stay).
+        Unconfigured, a value is only kept (checked by its descriptor): configure reads it."""
+        if self.loop is None:
+            return SetParametersResult(successful=True)
         model = [p for p in params if p.name == MODEL_PATH]
         others = {p.name: p.value for p in params if p.name != MODEL_PATH}
         try:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from peel_msgs_py.lifecycle import AUTOSTART
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 
 from .config import PARAM_SPECS as LIBRARY_SPECS
@@ -37,6 +38,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
               "model version (the simulator starts on it)", min=0),
     ParamSpec("node.wait_subscribers_s", float, 60.0,
               "wall s to wait for them; then the version is announced anyway", min=0.0),
+    AUTOSTART,
 )
 
 #: Everything the node declares.

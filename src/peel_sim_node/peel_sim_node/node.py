@@ -1,21 +1,25 @@
 """``peel_sim_node``: the simulator / plant bridge node of the graph (docs/graph.md).
 
-Runs ``node.tasks`` consecutive tasks (:class:`~peel_sim_node.lockstep.TaskSequence` on
-:class:`~peel_sim_node.env.PeelEnv`, ``sim`` or ``plant``) and owns the clock: every sample
-(dt = 0.1 s, section 4.2) it publishes ``/clock`` and the measured state on ``/peel/wrench``,
-``/peel/twist``, ``/peel/pose`` (SI, stamped with the sample's ROS time, frame
-``peel_task_<k>``); each control sample waits for the ``/peel/cmd_vel`` that answers its stamp
-(lockstep); each finished task goes out on ``/peel/trajectory``. A wall-clock timer re-sends an
-unanswered sample every ``node.cmd_timeout_s`` and aborts the task after ``node.cmd_give_up_s``.
-Which task runs when (the graph's readers before task 1; between tasks, ``node.wait_model_s``
-for the learner's update of the last task, Algorithm 2 line 20) is the ROS-free
+A managed node (:class:`~peel_msgs_py.ros.lifecycle.ManagedNode`, docs/graph.md "Lifecycle"):
+configure checks the parameters and builds the simulator and the topics; activate runs the task
+loop; deactivate stops it (no task starts, no command is executed, a running task ends
+``aborted``); cleanup closes the simulator. Active, it runs ``node.tasks`` consecutive tasks
+(:class:`~peel_sim_node.lockstep.TaskSequence` on :class:`~peel_sim_node.env.PeelEnv`, ``sim``
+or ``plant``) and owns the clock: every sample (dt = 0.1 s, section 4.2) it publishes ``/clock``
+and the measured state on ``/peel/wrench``, ``/peel/twist``, ``/peel/pose`` (SI, stamped with
+the sample's ROS time, frame ``peel_task_<k>``); each control sample waits for the
+``/peel/cmd_vel`` that answers its stamp (lockstep); each finished task goes out on
+``/peel/trajectory``. A wall-clock timer re-sends an unanswered sample every
+``node.cmd_timeout_s`` and aborts the task after ``node.cmd_give_up_s``. Which task runs when
+(the graph's readers before task 1; between tasks, ``node.wait_model_s`` for the learner's
+update of the last task, Algorithm 2 line 20) is the ROS-free
 :class:`~peel_bridge.loop.TaskLoop`, and the publishers, the command subscription and model
 following (``/peel/model_info``, ``/peel/model_update``) are
 :class:`~peel_bridge.plant_node.PlantTopics`, both shared with ``peel_nachi_bridge``.
 ``node.effects`` adds user effects (``module:function``,
 :func:`~peel_sim_node.effects.load_effects`) to the plant; a name that does not import is
-refused (exit 2) before any topic exists. A command is executed only inside
-``[node.u_min_mmps, node.u_max_mmps]`` (default the Nachi controller's 0-20 mm/s,
+refused (exit 2) before any topic exists. A command is executed only inside ``[node.u_min_mmps,
+node.u_max_mmps]`` (default the Nachi controller's 0-20 mm/s,
 :class:`~peel_msgs_py.wire.SpeedLimits`): a faster or negative one is clamped, a non-finite one
 dropped, both counted and logged (:class:`~peel_msgs_py.wire.DropLog`) and counted in the
 trajectory's meta (``cmd_limits_mmps``, ``cmd_clamped``, ``cmd_dropped``).
@@ -30,14 +34,15 @@ from typing import Any
 
 from geometry_msgs.msg import TwistStamped
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 
 from peel_bridge.loop import LoopParams, TaskLoop
 from peel_bridge.plant_node import PlantTopics
 from peel_msgs_py import topics
 from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.lifecycle import AUTOSTART
 from peel_msgs_py.ros.diagnostics import publish_diagnostics
+from peel_msgs_py.ros.lifecycle import ManagedNode
 from peel_msgs_py.ros.main import run_node
 from peel_msgs_py.ros.messages import stamp_ns
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
@@ -69,33 +74,61 @@ def speed_limits(p: dict[str, Any]) -> SpeedLimits:
         raise PeelError(f"parameters 'node.u_min_mmps', 'node.u_max_mmps': {exc}") from None
 
 
-class SimNode(NamedRefusals, Node):
-    """A :class:`TaskSequence` in lockstep with the planner, driven by a :class:`TaskLoop`."""
+class SimNode(NamedRefusals, ManagedNode):
+    """A :class:`TaskSequence` in lockstep with the planner, driven by a :class:`TaskLoop`, as
+    a managed node: configure builds the simulator, activate runs the tasks (docs/graph.md
+    "Lifecycle")."""
 
     def __init__(self) -> None:
         super().__init__(NODE_NAME)
         values = declare(self, SPECS)
         self.p = {k: v for k, v in values.items() if k.startswith("node.")}
+        self.seq: TaskSequence | None = None  # None while unconfigured
+        self.done, self.exit_status = False, 0
+        self.last_outcome: str | None = None
+        publish_diagnostics(self, self.diagnostics)
+        self.autostart(self.p[AUTOSTART.name])
+
+    def setup(self) -> None:
+        """configure: the parameters checked, the effects imported, the simulator built."""
+        values = {n: p.value for n, p in self.get_parameters_by_prefix("").items()}
+        self.p = {k: v for k, v in values.items() if k.startswith("node.")}
         self.limits = speed_limits(self.p)
-        self.seq = TaskSequence(SimConfig.from_params(library_params(values)),
-                                source=self.p["node.source"], seed=self.p["node.seed"],
-                                task_slot_s=self.p["node.task_slot_s"],
-                                effects=load_effects(self.p["node.effects"]))
+        cfg = SimConfig.from_params(library_params(values))
+        effects = load_effects(self.p["node.effects"])
+        self.seq = TaskSequence(cfg, source=self.p["node.source"], seed=self.p["node.seed"],
+                                task_slot_s=self.p["node.task_slot_s"], effects=effects)
         self.plant = PlantTopics(self, self.p["node.learner_node"], self.on_cmd)
         self.loop = TaskLoop(LoopParams.from_params(self.p), self.on_log)
         self.clamped = self.dropped = 0  # commands of the running task
         self.sent = self.asked = time.monotonic()  # last publication; first sending of the waiting one
-        self.done, self.exit_status = False, 0
-        self.last_outcome: str | None = None
-        self.create_timer(TICK_S, self.on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        publish_diagnostics(self, self.diagnostics)
+        self.own(self.create_timer(TICK_S, self.on_tick,
+                                   clock=Clock(clock_type=ClockType.STEADY_TIME)))
         self.get_logger().info(f"{self.p['node.source']} ready: {self.p['node.tasks']} tasks, "
                                f"seed {self.p['node.seed']}, commands limited to "
                                f"{self.limits.describe()}")
 
+    def stop(self) -> None:
+        """deactivate: no task starts, no command is executed; a running task ends aborted."""
+        if self.loop.phase == "running":
+            self.get_logger().warning("deactivated during a task: the task is aborted")
+            self.end_task("aborted")
+
+    def release(self) -> None:
+        """cleanup / shutdown: the simulator closed, the topics destroyed."""
+        if self.seq is not None:
+            self.seq.close()
+        self.seq = None
+        if getattr(self, "plant", None) is not None:
+            self.plant.destroy()
+        self.plant = None
+
     # -- callbacks ---------------------------------------------------------------------------
     def on_cmd(self, msg: TwistStamped) -> None:
-        """A command answering the waiting sample, executed inside the limits."""
+        """A command answering the waiting sample, executed inside the limits (only while
+        active: an inactive bridge forwards nothing to the simulator)."""
+        if not self.active:
+            return
         u = float(mps_to_mmps(msg.twist.linear.x))
         if not math.isfinite(u):
             self.dropped += 1
@@ -118,6 +151,9 @@ class SimNode(NamedRefusals, Node):
             self.end_task(None)
 
     def on_tick(self) -> None:
+        """Active: start the next task when the task loop says so, or watch the lockstep."""
+        if not self.active:
+            return
         index = self.loop.poll(time.monotonic(), self.plant.readiness())
         if index is not None:
             self.start_task(index)
@@ -133,10 +169,14 @@ class SimNode(NamedRefusals, Node):
             self.get_logger().info(text)
 
     def diagnostics(self) -> list[Status]:
-        """The lockstep's health (:func:`~peel_sim_node.health.sim_status`), 1 Hz."""
+        """The lockstep's health (:func:`~peel_sim_node.health.sim_status`), 1 Hz; the
+        lifecycle state while not active."""
+        if self.seq is None:
+            return self.lifecycle_status()
         phase = self.loop.phase
         waiting = time.monotonic() - self.asked if phase == "running" else None
-        return [sim_status(self.p["node.source"], phase, self.loop.ended_tasks,
+        return [*self.lifecycle_status(),
+                sim_status(self.p["node.source"], phase, self.loop.ended_tasks,
                            self.p["node.tasks"], self.plant.model_version, waiting,
                            self.p["node.cmd_timeout_s"], self.last_outcome)]
 
@@ -175,10 +215,6 @@ class SimNode(NamedRefusals, Node):
     def publish(self, s: Sample) -> None:
         self.plant.publish_sample(s)
         self.sent = time.monotonic()
-
-    def destroy_node(self) -> None:
-        self.seq.close()
-        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

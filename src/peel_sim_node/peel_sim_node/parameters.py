@@ -10,6 +10,7 @@ at run time: the physics and the task sequence are fixed when the node starts.
 from __future__ import annotations
 
 from peel_bridge.parameters import LOOP_SPECS
+from peel_msgs_py.lifecycle import AUTOSTART
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 from peel_msgs_py.wire import speed_limit_specs
 
@@ -29,6 +30,7 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.effects", list, [""],
               "user effects added to the plant, each 'module:function' "
               "(peel_sim_node.effects; docs/residual.md); [''] or [] = none"),
+    AUTOSTART,
 )
 
 #: Everything the node declares.

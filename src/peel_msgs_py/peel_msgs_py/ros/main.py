@@ -8,7 +8,9 @@
 * ``rclpy.init``; the node is built (parameters declared with descriptors; a refused value
   raises :class:`~peel_msgs_py.errors.ParameterError`) and spun until it says it is done
   (``node.done``) or a signal arrives.
-* Bad input of any kind prints ``<node>: error: <message>`` (one line) and exits 2.
+* Bad input of any kind prints ``<node>: error: <message>`` (one line) and exits 2 (a managed
+  node's failed configure with the status its error names,
+  :class:`~peel_msgs_py.lifecycle.ConfigureError`).
 * SIGINT or SIGTERM stop the node cleanly with status 0 and no traceback, whenever they come
   (while the node is built, spinning or torn down): rclpy's signal handler shuts the context
   down and wakes the executor, and the Python-level handler it chains to only notes the signal
@@ -18,6 +20,8 @@
 * While it spins, the node looks every :data:`TWIN_CHECK_S` for a second node of its own name
   on the ROS domain (another graph, or the same node started twice by hand) and warns once,
   naming the domain: two such nodes answer each other's topics and services.
+* A managed node shut down after a failed configure ends as if it had raised that error
+  (:meth:`~peel_msgs_py.ros.lifecycle.ManagedNode.exit_error`).
 * Run as a program (``args`` None), the process then ends at once (:func:`exit_now`): the node
   and the context are closed, files are written atomically, and the interpreter's own teardown
   (torch's thread pools) took 1-4 s per node on a loaded 2-core machine.
@@ -126,9 +130,12 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
         if signals.received is None:  # else stopped before ROS started: nothing to build
             node = make()
             status = spin_until_done(node)
+            failure = getattr(node, "exit_error", lambda: None)()
+            if failure is not None:  # a managed node shut down after its configure failed
+                raise failure
     except PeelError as exc:
         print(f"{name}: error: {exc}", file=sys.stderr, flush=True)
-        status = 2
+        status = getattr(exc, "exit_status", 2)  # a failed configure may say 1 (lifecycle)
     except (KeyboardInterrupt, ExternalShutdownException):
         status = 0
     except Exception:
