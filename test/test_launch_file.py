@@ -47,10 +47,11 @@ def _console_scripts(pkg: str) -> dict[str, str]:
     return {}
 
 
-@pytest.mark.parametrize(("record", "plant"), [("", "sim"), ("/tmp/bag", "plant"),
-                                               ("/tmp/bag", "nachi")])
+@pytest.mark.parametrize(("record", "plant", "namespace"), [
+    ("", "sim", ""), ("/tmp/bag", "plant", ""), ("/tmp/bag", "nachi", ""), ("", "sim", "/cell_a")])
 def test_launch_file_names_existing_executables_nodes_and_files(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str, plant: str) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str, plant: str,
+        namespace: str) -> None:
     share = tmp_path / "share"
     (share / "peel_bringup").mkdir(parents=True)
     (share / "peel_bringup" / "config").symlink_to(ROOT / "config")
@@ -63,9 +64,9 @@ def test_launch_file_names_existing_executables_nodes_and_files(
     declared = {a.args[0]: a.kwargs.get("default_value") for a in desc.args[0]
                 if type(a).__name__ == "DeclareLaunchArgument"}
     assert set(declared) == {"plant", "tasks", "seed", "params", "record", "out", "nachi_host",
-                             "nachi_port"}
+                             "nachi_port", "namespace"}
     (opaque,) = [a for a in desc.args[0] if type(a).__name__ == "OpaqueFunction"]
-    given = {"record": record, "plant": plant}
+    given = {"record": record, "plant": plant, "namespace": namespace}
     if plant == "nachi":
         given.update(nachi_host="10.0.0.5", nachi_port="48113")
     context = types.SimpleNamespace(launch_configurations={**declared, **given})
@@ -86,6 +87,7 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         if name == "peel_recorder":
             assert node.kwargs["arguments"] == ["--out", record]
             continue
+        assert node.kwargs["namespace"] == (namespace or None)  # the whole cell moves
         assert name in registered_nodes()  # a node whose parameters are registered
         files = [p for p in node.kwargs["parameters"] if isinstance(p, str)]
         assert files and all(Path(f).is_file() for f in files)
@@ -95,6 +97,7 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         assert overrides["use_sim_time"] is True
         if name == bridge:  # the state's publisher runs the K tasks and ends the launch
             assert overrides["node.tasks"] == 3 and overrides["node.exit_when_done"] is True
+            assert overrides["node.learner_node"] == f"{namespace}/model_learner_node"
         if name == "peel_nachi_bridge":
             assert (overrides["link.host"], overrides["link.port"]) == ("10.0.0.5", 48113)
         known = {s.name for s in importlib.import_module(f"{name}.parameters").SPECS}

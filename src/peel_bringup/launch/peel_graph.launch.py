@@ -15,6 +15,10 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
   then ``use_sim_time: true`` and the settings below;
 * ``record:=BAG`` adds the recorder (``ros2 run peel_bag peel_recorder --out BAG``, the
   same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
+* ``namespace:=/cell_a`` puts the three nodes under ``/cell_a``: every topic
+  (``/cell_a/peel/wrench``, ``/cell_a/clock``, ...) and the planner's services move with them
+  (docs/fleet.md); the recorder records the root cell only, so ``record:=`` needs an empty
+  namespace (``peel fleet --record`` records each cell);
 * the simulator (or the bridge) exits after the K tasks and the learner's last swap
   (``node.exit_when_done``); its exit, or any node's death, shuts the whole launch down (the
   recorder closes its bag on the SIGINT that launch sends).
@@ -54,10 +58,16 @@ def _bridge(arg: dict) -> tuple[str, dict]:
 def _setup(context, *args, **kwargs):
     cfg = os.path.join(get_package_share_directory("peel_bringup"), "config")
     arg = {name: context.launch_configurations[name] for name in (
-        "plant", "tasks", "seed", "params", "record", "out", "nachi_host", "nachi_port")}
+        "plant", "tasks", "seed", "params", "record", "out", "nachi_host", "nachi_port",
+        "namespace")}
+    namespace = arg["namespace"].rstrip("/")
+    if namespace and arg["record"]:
+        raise RuntimeError("record:= records the root cell only; leave namespace:= empty, or "
+                           "record each cell with: peel fleet --record BAG")
     override = [arg["params"]] if arg["params"] else []
     models = os.path.abspath(os.path.join(arg["out"], "models"))
     bridge, settings = _bridge(arg)
+    settings["node.learner_node"] = f"{namespace}/model_learner_node"  # the producer it waits for
     extra = {
         bridge: settings,
         "peel_planner_node": {"node.seed": int(arg["seed"]),
@@ -69,6 +79,7 @@ def _setup(context, *args, **kwargs):
     for name in (bridge, *NODES[1:]):
         nodes[name] = Node(
             package=name, executable=name, name=name, output="screen",
+            namespace=namespace or None,
             parameters=[os.path.join(cfg, f"{name}.yaml"), *override,
                         {"use_sim_time": True, **extra[name]}],
         )
@@ -104,5 +115,8 @@ def generate_launch_description() -> LaunchDescription:
                               description="bag directory to record to (empty: no bag)"),
         DeclareLaunchArgument("out", default_value="runs/launch",
                               description="directory for the learner's model_vNNNN files"),
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="namespace of the cell's nodes and topics, e.g. "
+                                          "/cell_a (empty: the root, /peel/...)"),
         OpaqueFunction(function=_setup),
     ])
