@@ -9,7 +9,9 @@ service. Every task's update ends in one report on ``/peel/model_update``
 (:class:`~peel_msgs_py.modelinfo.UpdateReport`: swapped, refused with the planner's reason,
 failed, skipped), so the simulator and ``peel graph`` go on at once instead of waiting for a
 model that will not come. A starting model with non-finite outputs is refused (exit 2); after a
-failed or refused update the learner keeps training its own last good weights.
+failed or refused update the learner keeps training its own last good weights. With
+``node.cells`` it serves several cells instead (:mod:`~model_learner_node.cells`,
+docs/fleet.md).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.wire import DropLog, trajectory_nonfinite
 
+from .cells_node import Cells
 from .health import LearnerHealth
 from .online import OnlineLearner, task_number
 from .parameters import NODE_NAME, SPECS
@@ -60,13 +63,17 @@ class LearnerNode(NamedRefusals, Node):
         self.timeout_s = float(values["node.swap_timeout_s"])
         service = values["node.planner_node"].rstrip("/") + "/set_parameters"
         self.client = self.create_client(SetParameters, service)
-        self.queue: queue.Queue[Trajectory | None] = queue.Queue()
-        self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
-                                                topics.qos_profile(topics.MODEL_UPDATE))
-        self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
-                                 topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.drops = DropLog()
         self.closing = threading.Event()
+        cells = [c for c in values["node.cells"] if c]
+        self.cells = Cells(self, cells, values["node.cell_wait_s"], self.timeout_s, self.decode,
+                           self.learner, self.closing) if cells else None
+        self.queue: Any = self.cells if self.cells is not None else queue.Queue()
+        if self.cells is None:  # one cell: its topics in the learner's own namespace
+            self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
+                                                    topics.qos_profile(topics.MODEL_UPDATE))
+            self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
+                                     topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.health = LearnerHealth()
         publish_diagnostics(self, self.diagnostics)
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
@@ -74,19 +81,25 @@ class LearnerNode(NamedRefusals, Node):
         self.get_logger().info(f"learner ready: {self.learner.describe()}")
 
     def on_trajectory(self, msg: Float64MultiArray) -> None:
-        """A finished task, queued for the worker; one that does not decode or holds
-        non-finite values is dropped here (counted, logged at most every few seconds)."""
+        """A finished task, queued for the worker (unless :meth:`decode` drops it)."""
+        traj = self.decode(msg)
+        if traj is not None:
+            self.queue.put(traj)
+
+    def decode(self, msg: Float64MultiArray) -> Trajectory | None:
+        """The trajectory of ``msg``; None for one that does not decode or holds non-finite
+        values, dropped here (counted, logged at most every few seconds)."""
         try:
             traj = codec.trajectory_from_msg(msg)
         except PeelError as exc:
             self.log_drop(self.drops.drop(topics.TRAJECTORY, "layout", f"does not decode: {exc}"))
-            return
+            return None
         bad = trajectory_nonfinite(traj)
         if bad is not None:
             self.log_drop(self.drops.drop(topics.TRAJECTORY, f"'{bad}'",
                                           "holds non-finite values"))
-            return
-        self.queue.put(traj)
+            return None
+        return traj
 
     def log_drop(self, line: str | None) -> None:
         if line is not None:
@@ -101,11 +114,14 @@ class LearnerNode(NamedRefusals, Node):
             if self.closing.is_set():
                 return  # the node is shutting down: nothing is offered any more
             try:
-                if report.status == OFFERED:
+                if self.cells is not None:  # every cell, each reported on its own topic
+                    report = self.cells.deliver(report)
+                elif report.status == OFFERED:
                     report = self.offer(report)
                 if report.status == OFFERED:
                     return  # stopped before the planner answered: nothing to report
-                self.pub_update.publish(String(data=report.to_json()))
+                if self.cells is None:
+                    self.pub_update.publish(String(data=report.to_json()))
                 self.health.record(report, update_s)
             except Exception as exc:  # rclpy refuses calls once the node is being destroyed
                 if self.closing.is_set():
