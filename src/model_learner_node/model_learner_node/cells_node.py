@@ -13,10 +13,13 @@ cell's (docs/graph.md, "The model swap").
   ``<learner>@<c>`` in its checkpoint meta and reports (:func:`cell_producer`), so that cell
   c's bridge, whose ``node.learner_node`` is that name, waits for exactly its own update and
   takes every other cell's as a model swapped in "by anyone else".
-* Every update goes to every cell: the swaps are requested at once, each answered on its own
-  deadline, and each cell's outcome is published on that cell's ``peel/model_update`` as soon
-  as it is known, the cell named (``UpdateReport.cell``). A cell whose planner's service is not
-  there within :data:`READY_WAIT_S` is reported ``refused`` at once and not waited for.
+* Every update goes to every cell: the swaps are requested at once and each cell's outcome is
+  published on that cell's ``peel/model_update`` when its planner answers, the cell named
+  (``UpdateReport.cell``). The worker waits only for the cell the task came from, so a cell
+  that is down holds nobody up: one whose planner service is not there within
+  :data:`READY_WAIT_S` is reported ``refused`` at once, a request left unanswered (a cell
+  killed before DDS noticed) is taken back and reported ``refused`` after
+  ``node.swap_timeout_s``.
 * A cell that joins late gets the current model on start: the learner subscribes a cell's
   trajectories only once its planner's ``model_info`` (transient local, so a planner that
   starts after the learner is seen too) names the fleet's current model; until then it swaps
@@ -95,6 +98,10 @@ class Cells:
     closing: threading.Event
     cells: dict[str, Cell] = field(default_factory=dict)
     current: UpdateReport | None = None  # the fleet's model: the last update swapped in
+    latest: UpdateReport | None = None  # the last update offered
+    inflight: dict[str, tuple[Any, UpdateReport, float]] = field(default_factory=dict)
+    outcomes: dict[tuple[str, str, int], UpdateReport] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
         check_cells(self.names)
@@ -176,47 +183,73 @@ class Cells:
     # -- one update to every cell -----------------------------------------------------------
     def deliver(self, report: UpdateReport) -> UpdateReport:
         """Offer ``report``'s update to every cell (or pass on a failed / skipped one), each
-        cell's outcome on its own topic; returns the outcome at the cell the task came from
-        (``offered`` when stopped before it was known)."""
+        cell's outcome on its own topic as it comes; returns the outcome at the cell the task
+        came from once it is known (``offered`` when stopped before)."""
         origin = report.producer.rpartition("@")[2]
         if report.status != OFFERED:
             for state in self.cells.values():
                 self.publish(state, report)
             return replace(report, cell=origin)
-        outcomes = self.swap_all(report)
-        if any(r.status == SWAPPED for r in outcomes.values()):
-            self.current = report
-        return outcomes.get(origin, report)
+        self.sweep()
+        self.latest = report
+        ready = self.wait_ready()
+        for state in self.cells.values():
+            if state.name in ready:
+                self.offer(state, report)
+            else:
+                self.publish(state, replace(report, status=REFUSED, reason=(
+                    f"{state.client.srv_name} is not available (the cell is down or not "
+                    f"started; it gets the current model when its planner announces itself)")))
+        deadline = time.monotonic() + self.timeout_s
+        key = (origin, report.producer, report.task)
+        while key not in self.outcomes and origin in ready and time.monotonic() < deadline:
+            if self.closing.wait(0.05):
+                return report
+        self.sweep()
+        return self.outcomes.pop(key, replace(report, status=REFUSED, cell=origin,
+                                              reason="the cell's planner did not answer"))
 
-    def swap_all(self, report: UpdateReport) -> dict[str, UpdateReport]:
-        """Request the swap from every cell at once; publish each outcome when it is known."""
-        name = Path(str(report.path)).name
-        start = time.monotonic()
-        todo = dict(self.cells)
-        sent: dict[str, Any] = {}
-        outcomes: dict[str, UpdateReport] = {}
-        while (todo or sent) and not self.closing.is_set():
-            waited = time.monotonic() - start
-            for cell, state in list(todo.items()):
-                if state.client.service_is_ready():
-                    sent[cell] = state.client.call_async(swap_request(str(report.path)))
-                    del todo[cell]
-                elif waited > READY_WAIT_S:
-                    reason = f"{state.client.srv_name} is not available (the cell is down)"
-                    outcomes[cell] = replace(report, status=REFUSED, reason=reason)
-                    del todo[cell]
-                    self.publish(state, outcomes[cell])
-            for cell, future in list(sent.items()):
-                if future.done() or waited > self.timeout_s:
-                    ok, reason = answer(future) if future.done() else (
-                        False, f"no answer from the planner within {self.timeout_s:g} s")
-                    if not future.done():
-                        self.cells[cell].client.remove_pending_request(future)
-                    outcomes[cell] = replace(report, status=SWAPPED if ok else REFUSED,
-                                             reason="" if ok else reason)
-                    del sent[cell]
-                    self.publish(self.cells[cell], outcomes[cell])
-                    self.node.get_logger().info(f"task {report.task} of {report.producer}: "
-                                                f"{cell} {outcomes[cell].status} {name}")
+    def wait_ready(self) -> set[str]:
+        """The cells whose planner service is there, each waited for up to READY_WAIT_S."""
+        deadline = time.monotonic() + READY_WAIT_S
+        while True:
+            ready = {n for n, c in self.cells.items() if c.client.service_is_ready()}
+            if len(ready) == len(self.cells) or time.monotonic() > deadline:
+                return ready
             time.sleep(0.05)
-        return outcomes
+
+    def offer(self, state: Cell, report: UpdateReport) -> None:
+        """Request the swap; :meth:`answered` reports it when the planner answers."""
+        future = state.client.call_async(swap_request(str(report.path)))
+        with self.lock:
+            self.inflight[state.name] = (future, report, time.monotonic() + self.timeout_s)
+        future.add_done_callback(lambda f, c=state.name, r=report: self.answered(c, r, f))
+
+    def answered(self, cell: str, report: UpdateReport, future: Any) -> None:
+        """A planner answered: its outcome on its topic (the origin's kept for the worker)."""
+        ok, reason = answer(future)
+        self.settle(cell, future, replace(report, status=SWAPPED if ok else REFUSED,
+                                          reason="" if ok else reason))
+
+    def settle(self, cell: str, future: Any, outcome: UpdateReport) -> None:
+        with self.lock:
+            if self.inflight.get(cell, (None,))[0] is future:
+                del self.inflight[cell]
+            if outcome.status == SWAPPED and outcome.sha256 == self.latest.sha256:
+                self.current = self.latest
+            if cell == outcome.producer.rpartition("@")[2]:
+                self.outcomes[(cell, outcome.producer, outcome.task)] = replace(outcome, cell=cell)
+        self.publish(self.cells[cell], outcome)
+        self.node.get_logger().info(f"{cell}: {outcome.status} the update after task "
+                                    f"{outcome.task} of {outcome.producer.rpartition('@')[2]}")
+
+    def sweep(self) -> None:
+        """Requests unanswered past their deadline (a cell killed before DDS noticed): taken
+        back and reported refused, so nothing waits for them."""
+        now = time.monotonic()
+        with self.lock:
+            late = [(c, f, r) for c, (f, r, d) in self.inflight.items() if d < now]
+        for cell, future, report in late:
+            self.cells[cell].client.remove_pending_request(future)
+            self.settle(cell, future, replace(report, status=REFUSED, reason=(
+                f"no answer from the planner within {self.timeout_s:g} s")))
