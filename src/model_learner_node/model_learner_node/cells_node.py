@@ -5,7 +5,8 @@ Each cell is a namespace (``/cell_0``) holding a plant bridge and a planner. For
 learner subscribes the cell's ``peel/trajectory`` and its planner's latched ``peel/model_info``,
 publishes on the cell's ``peel/model_update`` and calls the planner's standard
 ``<cell>/peel_planner_node/set_parameters`` service (``model.path``), the same swap as one
-cell's (docs/graph.md, "The model swap").
+cell's (docs/graph.md, "The model swap"). The node's worker takes its trajectories from
+:meth:`Cells.get` and hands every update to :meth:`Cells.deliver`.
 
 * The finished peels of all cells go into one replay pool and Algorithm 1 learns them in the
   order of :class:`~model_learner_node.cells.TaskOrder` (deterministic for a seed; what it
@@ -15,8 +16,9 @@ cell's (docs/graph.md, "The model swap").
   takes every other cell's as a model swapped in "by anyone else".
 * Every update goes to every cell: the swaps are requested at once and each cell's outcome is
   published on that cell's ``peel/model_update`` when its planner answers, the cell named
-  (``UpdateReport.cell``). The worker waits only for the cell the task came from, so a cell
-  that is down holds nobody up: one whose planner service is not there within
+  (``UpdateReport.cell``). The worker waits only for the cell the task came from, and for it
+  no longer than :data:`READY_WAIT_S` once another cell's peel is waiting (its answer is
+  reported when it comes), so a cell that is down holds nobody up: one whose planner service is not there within
   :data:`READY_WAIT_S` is reported ``refused`` at once, a request left unanswered (a cell
   killed before DDS noticed) is taken back and reported ``refused`` after
   ``node.swap_timeout_s``.
@@ -200,14 +202,15 @@ class Cells:
                 self.publish(state, replace(report, status=REFUSED, reason=(
                     f"{state.client.srv_name} is not available (the cell is down or not "
                     f"started; it gets the current model when its planner announces itself)")))
-        deadline = time.monotonic() + self.timeout_s
+        start = time.monotonic()
         key = (origin, report.producer, report.task)
-        while key not in self.outcomes and origin in ready and time.monotonic() < deadline:
-            if self.closing.wait(0.05):
-                return report
+        while key not in self.outcomes and origin in ready and not self.closing.wait(0.05):
+            waited = time.monotonic() - start
+            if waited > self.timeout_s or (waited > READY_WAIT_S and self.order.qsize()):
+                break  # another cell's peel waits: the answer is reported when it comes
         self.sweep()
-        return self.outcomes.pop(key, replace(report, status=REFUSED, cell=origin,
-                                              reason="the cell's planner did not answer"))
+        with self.lock:
+            return self.outcomes.pop(key, replace(report, cell=origin))
 
     def wait_ready(self) -> set[str]:
         """The cells whose planner service is there, each waited for up to READY_WAIT_S."""

@@ -118,7 +118,7 @@ class LearnerNode(NamedRefusals, Node):
                     report = self.cells.deliver(report)
                 elif report.status == OFFERED:
                     report = self.offer(report)
-                if report.status == OFFERED:
+                if self.closing.is_set():
                     return  # stopped before the planner answered: nothing to report
                 if self.cells is None:
                     self.pub_update.publish(String(data=report.to_json()))

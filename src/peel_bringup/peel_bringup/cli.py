@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("peel_experiments.bench:main", "benchmarks printing JSON: sim, model, planner, ros, nachi, nachi-graph"),
     "experiment": ("peel_experiments.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
+    "fleet": ("peel_bringup.fleet:main", "K peeling cells under their own namespaces and one learner"),
     "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
@@ -46,7 +47,7 @@ def _usage() -> str:
 
 #: Commands whose process ends at once after its work (files closed, children stopped): the
 #: interpreter's teardown of torch took 1-1.5 s after every demo on a loaded 2-core machine.
-FAST_EXIT = frozenset({"demo", "graph"})
+FAST_EXIT = frozenset({"demo", "graph", "fleet"})
 
 
 def main(argv: list[str] | None = None) -> int:
