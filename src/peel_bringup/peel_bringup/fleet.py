@@ -360,6 +360,15 @@ def run_fleet(args: Any) -> int:
     return write_summary(w)
 
 
+def update_times(log: Path) -> list[float]:
+    """Wall s of each run of Algorithm 1, as the learner logged them (its log file)."""
+    try:
+        text = log.read_text(errors="replace")
+    except OSError:
+        return []
+    return [float(x) for x in re.findall(r"Algorithm 1 done in ([0-9.]+) s", text)]
+
+
 def write_summary(w: FleetWatch) -> int:
     """``summary.json``, the closing line and the summary as one JSON line; the exit status."""
     run = w.run
@@ -372,6 +381,7 @@ def write_summary(w: FleetWatch) -> int:
                         "task": r.task} for r in mon.updates.records],
         }
     summary = {"cells": cells, "tasks": run.tasks, "plant": run.plant, "seed": run.seed,
+               "learner_update_s": update_times(w.learner[0].log),
                "dead": w.dead, "failed_updates": w.failed_updates, "status": w.status,
                "run_dir": str(run.run_dir), "bag": str(run.bag) if run.bag else None}
     atomic_write_text(run.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
