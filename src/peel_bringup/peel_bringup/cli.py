@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("peel_experiments.experiment_cli:main", "20 consecutive peels per method (4.4) and the sweep (4.5)"),
     "graph": ("peel_bringup.graph:main", "run the ROS 2 node graph as separate processes"),
     "fleet": ("peel_bringup.fleet:main", "K peeling cells under their own namespaces and one learner"),
+    "fleet-report": ("peel_bringup.fleet_report:main", "where the wall time of peel fleet runs goes (JSON)"),
     "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
