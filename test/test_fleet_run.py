@@ -3,7 +3,8 @@ processes on real rclpy.
 
 * two cells and a learner: each cell finishes its tasks, both planners receive every update
   (each cell's planner announces every update, whichever cell's task it was learned from),
-  and an outside rclpy node finds each cell's topics under its namespace only;
+  an outside rclpy node finds each cell's topics under its namespace only, and each cell's
+  bag holds that cell's topics under the one-cell names, the learner's reports naming it;
 * one cell's planner killed mid-run: the other cell and the learner go on, the launcher
   names the dead cell and exits 1;
 * a cell started after two updates plans its first task with the current model.
@@ -22,7 +23,7 @@ from typing import Any
 
 import pytest
 import rclpy
-from graph_helpers import SMALL_MAML, Lines, node_env
+from graph_helpers import SMALL_MAML, Lines, node_env, read_bag_mcap_ros2
 
 from peel_msgs_py import topics
 
@@ -89,7 +90,8 @@ class Lister:
 def test_two_cells_finish_every_planner_gets_every_update_topics_under_namespaces(
         tmp_path: Path, ros_domain: str) -> None:
     lister = Lister()
-    proc, lines = _fleet(tmp_path, "--cells", "2", "--tasks", "2")
+    bag = tmp_path / "bag"
+    proc, lines = _fleet(tmp_path, "--cells", "2", "--tasks", "2", "--record", str(bag))
     try:
         code, summary, text = _summary(proc, lines)
     finally:
@@ -105,6 +107,12 @@ def test_two_cells_finish_every_planner_gets_every_update_topics_under_namespace
     peel = {t for t in seen if "peel/" in t or t.endswith("/clock") or t == topics.CLOCK}
     expected = {topics.under(cell, n) for cell in ("/cell_0", "/cell_1") for n in topics.TOPICS}
     assert peel == expected, sorted(peel ^ expected)
+    for cell in ("/cell_0", "/cell_1"):  # a bag per cell, in the one-cell layout
+        recorded = read_bag_mcap_ros2(bag / cell.strip("/"))
+        assert set(recorded) <= set(topics.TOPICS), sorted(recorded)
+        assert len(recorded[topics.TRAJECTORY]) == 2 and recorded[topics.WRENCH], cell
+        reports = [json.loads(m.data) for m in recorded[topics.MODEL_UPDATE]]
+        assert {r["cell"] for r in reports} == {cell}, reports
 
 
 def test_a_killed_cell_is_reported_and_the_other_cell_and_the_learner_go_on(
