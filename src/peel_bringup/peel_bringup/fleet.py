@@ -44,6 +44,7 @@ from peel_msgs_py.modelinfo import SWAPPED
 from peel_msgs_py.outputs import OutputDir, check_new_path
 from peel_msgs_py.task import mppi_seed
 
+from .fleet_report import update_times
 from .graph import (
     BAD_INPUT,
     LEARNER,
@@ -358,15 +359,6 @@ def run_fleet(args: Any) -> int:
         for mon in mons:
             close_monitor(mon)
     return write_summary(w)
-
-
-def update_times(log: Path) -> list[float]:
-    """Wall s of each run of Algorithm 1, as the learner logged them (its log file)."""
-    try:
-        text = log.read_text(errors="replace")
-    except OSError:
-        return []
-    return [float(x) for x in re.findall(r"Algorithm 1 done in ([0-9.]+) s", text)]
 
 
 def write_summary(w: FleetWatch) -> int:

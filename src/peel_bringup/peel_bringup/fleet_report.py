@@ -35,6 +35,15 @@ def stamps(log: Path, pattern: str) -> dict[int, float]:
     return out
 
 
+def update_times(log: Path) -> list[float]:
+    """Wall s of each run of Algorithm 1, as the learner logged them (its log file)."""
+    try:
+        text = log.read_text(errors="replace")
+    except OSError:
+        return []
+    return [float(x) for x in re.findall(r"Algorithm 1 done in ([0-9.]+) s", text)]
+
+
 def _median(xs: list[float]) -> float | None:
     return round(statistics.median(xs), 2) if xs else None
 
