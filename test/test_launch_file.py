@@ -69,18 +69,18 @@ def _actions(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **given: str) -> t
     return declared, opaque.kwargs["function"](context)
 
 
-@pytest.mark.parametrize(("record", "plant", "live"), [("", "sim", ""), ("/tmp/bag", "plant", ""),
-                                                       ("/tmp/bag", "nachi", ""),
-                                                       ("", "sim", "8771")])
+@pytest.mark.parametrize(("record", "plant", "live", "namespace"), [
+    ("", "sim", "", ""), ("/tmp/bag", "plant", "", ""), ("/tmp/bag", "nachi", "", ""),
+    ("", "sim", "8771", ""), ("", "sim", "", "/cell_a")])
 def test_launch_file_names_existing_executables_nodes_and_files(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, record: str, plant: str,
-        live: str) -> None:
-    given = {"record": record, "plant": plant, "live": live}
+        live: str, namespace: str) -> None:
+    given = {"record": record, "plant": plant, "live": live, "namespace": namespace}
     if plant == "nachi":
         given.update(nachi_host="10.0.0.5", nachi_port="48113")
     declared, actions = _actions(tmp_path, monkeypatch, **given)
     assert set(declared) == {"plant", "tasks", "seed", "params", "record", "out", "nachi_host",
-                             "nachi_port", "live", "live_host"}
+                             "nachi_port", "live", "live_host", "namespace"}
     assert (declared["live"], declared["live_host"]) == ("", "127.0.0.1")
     nodes = [a for a in actions if type(a).__name__ == "Node"]
     names = {n.kwargs["name"] for n in nodes}
@@ -100,11 +100,14 @@ def test_launch_file_names_existing_executables_nodes_and_files(
             assert node.kwargs["arguments"] == ["--out", record, "--await-publishers", "10"]
             continue
         if name == "peel_lifecycle_manager":  # planner first, the bridge last
-            assert node.kwargs["arguments"] == ["lifecycle", "up", "peel_planner_node", bridge]
+            ns = f"{namespace}/" if namespace else ""
+            assert node.kwargs["arguments"] == ["lifecycle", "up", f"{ns}peel_planner_node",
+                                                f"{ns}{bridge}"]
             continue
         if name == "peel_live":
             assert node.kwargs["arguments"] == ["live", "--port", live, "--host", "127.0.0.1"]
             continue
+        assert node.kwargs["namespace"] == (namespace or None)  # the whole cell moves
         assert name in registered_nodes()  # a node whose parameters are registered
         files = [p for p in node.kwargs["parameters"] if isinstance(p, str)]
         assert files and all(Path(f).is_file() for f in files)
@@ -117,6 +120,7 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         readers = 1 + bool(record) + bool(live)  # the recorder and the live view count
         if name == bridge:
             assert overrides["node.min_subscribers"] == readers
+            assert overrides["node.learner_node"] == f"{namespace}/model_learner_node"
         if name == "peel_planner_node":
             assert overrides["node.min_cmd_subscribers"] == readers
         # the managed nodes wait unconfigured for the manager

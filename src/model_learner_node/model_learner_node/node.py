@@ -9,7 +9,9 @@ service. Every task's update ends in one report on ``/peel/model_update``
 (:class:`~peel_msgs_py.modelinfo.UpdateReport`: swapped, refused with the planner's reason,
 failed, skipped), so the simulator and ``peel graph`` go on at once instead of waiting for a
 model that will not come. A starting model with non-finite outputs is refused (exit 2); after a
-failed or refused update the learner keeps training its own last good weights.
+failed or refused update the learner keeps training its own last good weights. With
+``node.cells`` it serves several cells instead (:mod:`~model_learner_node.cells`,
+docs/fleet.md).
 
 With ``online.fast_every`` > 0 the learner also takes the fast step inside the peel
 (:mod:`~model_learner_node.in_peel_node`): on the running task's samples, swapped in mid-task
@@ -43,6 +45,7 @@ from peel_msgs_py.ros.parameters import NamedRefusals, declare
 from peel_msgs_py.trajectory import Trajectory
 from peel_msgs_py.wire import DropLog
 
+from .cells_node import Cells
 from .fast_step import FastStepConfig, FastStepper
 from .health import LearnerHealth
 from .in_peel import InPeel
@@ -67,15 +70,22 @@ class LearnerNode(NamedRefusals, Node):
         self.timeout_s = float(values["node.swap_timeout_s"])
         service = values["node.planner_node"].rstrip("/") + "/set_parameters"
         self.client = self.create_client(SetParameters, service)
-        self.queue: queue.Queue[Trajectory | None] = queue.Queue()
-        self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
-                                                topics.qos_profile(topics.MODEL_UPDATE))
         self.drops = DropLog()
         self.closing = threading.Event()
         self.lock = threading.Lock()  # Algorithm 1 and the fast step never run at once
+        cells = [c for c in values["node.cells"] if c]
+        if cells and values["online.fast_every"] > 0:
+            raise PeelError("parameter 'online.fast_every': the fast step inside the peel "
+                            "serves one cell; set it to 0 with node.cells")
+        self.cells = Cells(self, cells, values["node.cell_wait_s"], self.timeout_s, self.decode,
+                           self.learner, self.closing) if cells else None
+        self.queue: Any = self.cells if self.cells is not None else queue.Queue()
         self.in_peel = self.fast_step(values)  # warmed up before the bridge sees the learner
-        self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
-                                 topics.qos_profile(topics.TRAJECTORY, subscriber=True))
+        if self.cells is None:  # one cell: its topics in the learner's own namespace
+            self.pub_update = self.create_publisher(String, topics.MODEL_UPDATE,
+                                                    topics.qos_profile(topics.MODEL_UPDATE))
+            self.create_subscription(Float64MultiArray, topics.TRAJECTORY, self.on_trajectory,
+                                     topics.qos_profile(topics.TRAJECTORY, subscriber=True))
         self.health = LearnerHealth()
         publish_diagnostics(self, self.diagnostics)
         self.worker = threading.Thread(target=self.work, name="algorithm1", daemon=True)
@@ -94,14 +104,19 @@ class LearnerNode(NamedRefusals, Node):
                             self.lock, self.request_swap, self.closing)
 
     def on_trajectory(self, msg: Float64MultiArray) -> None:
-        """A finished task, queued for the worker; one that does not decode or holds
-        non-finite values is dropped here (counted, logged at most every few seconds)."""
-        traj = inbox.take(self.drops, topics.TRAJECTORY, inbox.trajectory, msg, self.log_drop)
+        """A finished task, queued for the worker (unless :meth:`decode` drops it); it ends
+        the fast step's task."""
+        traj = self.decode(msg)
         if traj is None:
             return
         if self.in_peel is not None:
             self.in_peel.end_task(task_number(traj, self.learner.n_tasks + 1) - 1)
         self.queue.put(traj)
+
+    def decode(self, msg: Float64MultiArray) -> Trajectory | None:
+        """The trajectory of ``msg``; None for one that does not decode or holds non-finite
+        values, dropped here (counted, logged at most every few seconds)."""
+        return inbox.take(self.drops, topics.TRAJECTORY, inbox.trajectory, msg, self.log_drop)
 
     def log_drop(self, line: str | None) -> None:
         if line is not None:
@@ -119,13 +134,17 @@ class LearnerNode(NamedRefusals, Node):
                 self.finish(report, update_s)
 
     def finish(self, report: UpdateReport, update_s: float) -> None:
-        """Offer an update to the planner; publish the report on ``/peel/model_update``."""
+        """Offer an update to the planner (to every cell's, with ``node.cells``); publish the
+        report on ``/peel/model_update`` (each cell's, by :class:`Cells`)."""
         try:
-            if report.status == OFFERED:
+            if self.cells is not None:  # every cell, each reported on its own topic
+                report = self.cells.deliver(report)
+            elif report.status == OFFERED:
                 report = self.offer(report)
-            if report.status == OFFERED:
+            if self.closing.is_set() or report.status == OFFERED:
                 return  # stopped before the planner answered: nothing to report
-            self.pub_update.publish(String(data=report.to_json()))
+            if self.cells is None:
+                self.pub_update.publish(String(data=report.to_json()))
             self.health.record(report, update_s)
         except Exception as exc:  # rclpy refuses calls once the node is being destroyed
             if self.closing.is_set():

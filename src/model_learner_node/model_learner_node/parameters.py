@@ -20,10 +20,17 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.out_dir", str, "runs/models", "where model_vNNNN.safetensors are written"),
     ParamSpec("node.method", str, "maml", "maml = Algorithm 1; retrain = baseline 2",
               choices=("maml", "retrain")),
-    ParamSpec("node.planner_node", str, "/peel_planner_node", "node whose model.path is set"),
+    ParamSpec("node.planner_node", str, "peel_planner_node",
+              "node whose model.path is set; relative = in the learner's namespace"),
     ParamSpec("node.swap_timeout_s", float, 60.0, "wall s to wait for the swap answer", min=0.1),
     ParamSpec("node.pool_capacity", int, 0, "replay pool size in trajectories; 0 = all", min=0),
     ParamSpec("node.threads", int, 1, "torch CPU threads of the learner process", min=1),
+    ParamSpec("node.cells", list, [""],
+              "namespaces of the cells served (docs/fleet.md), e.g. ['/cell_0', '/cell_1']; "
+              "[''] or [] = the one cell of the learner's own namespace"),
+    ParamSpec("node.cell_wait_s", float, 30.0,
+              "wall s a finished task waits for an earlier one of another cell (task order)",
+              min=0.0),
 )
 
 

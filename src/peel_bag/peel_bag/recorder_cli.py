@@ -23,6 +23,7 @@ import time
 
 from peel_msgs_py import held_signals
 from peel_msgs_py.cliargs import ArgumentParser, positive_float, positive_int, run_main
+from peel_msgs_py.errors import PeelError
 from peel_msgs_py.topics import RECORDED_TOPICS, topic
 
 from . import bag as bagmod
@@ -45,6 +46,9 @@ def _parser() -> ArgumentParser:
                    help="stop after S seconds of wall-clock time (default: until SIGINT/SIGTERM)")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help=f"topics to record (default: all of {', '.join(RECORDED_TOPICS)})")
+    p.add_argument("--cell", default="", metavar="NAMESPACE",
+                   help="record the topics of the cell under NAMESPACE (e.g. /cell_0), stored "
+                        "under their one-cell names /peel/... (docs/fleet.md)")
     p.add_argument("--chunk-size", type=positive_int, default=bagmod.DEFAULT_CHUNK_SIZE, metavar="BYTES",
                    help="flush a chunk when it holds this many bytes (default %(default)s)")
     p.add_argument("--flush-interval", type=positive_float, default=bagmod.DEFAULT_FLUSH_INTERVAL_S,
@@ -93,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     names = list(dict.fromkeys(args.topics or RECORDED_TOPICS))
     for name in names:
         topic(name)  # unknown topic -> PeelError naming it
+    if args.cell and not args.cell.startswith("/"):
+        raise PeelError(f"--cell: {args.cell!r} is not an absolute namespace such as /cell_0")
     writer = bagmod.BagWriter(
         args.out, chunk_size=args.chunk_size, flush_interval_s=args.flush_interval,
         compression=args.compression,
@@ -104,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     try:
         with _Stop() as stop:
-            record(writer, names, args.duration, stop, args.await_publishers)
+            record(writer, names, args.duration, stop, cell=args.cell.rstrip("/"),
+                   leave_wait_s=args.await_publishers)
     except bagmod.BagWriteError:
         pass  # in writer.failure
     finally:

@@ -11,7 +11,9 @@ text is the Jazzy definition from ``rosbags``' typestore. Chunks are flushed by 
 age (:class:`~peel_bag.bag.BagWriter`); the same timer ticks the writer so that a quiet
 topic's open chunk still reaches the disk within ``flush_interval_s``. A write that fails (a full
 disk) stops the recording: :func:`record` raises the writer's
-:class:`~peel_bag.bag.BagWriteError` (bag named, repair command included).
+:class:`~peel_bag.bag.BagWriteError` (bag named, repair command included). With a ``cell``
+(a namespace, docs/fleet.md) it records that cell's topics (``/cell_0/peel/wrench``, ...) under
+the table's names (``/peel/wrench``): each cell's bag has the one-cell layout.
 
 The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' own depth is 10):
 a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
@@ -37,7 +39,7 @@ import rclpy
 from rclpy.node import Node
 
 from peel_msgs_py.ros.qos import profile_to_bag
-from peel_msgs_py.topics import qos_profile, topic
+from peel_msgs_py.topics import qos_profile, topic, under
 
 from .bag import BagWriteError, BagWriter, message_definition
 
@@ -66,14 +68,16 @@ def rihs01(type_hash: Any) -> str | None:
 class RecorderNode(Node):
     """Records ``topics`` into an open :class:`BagWriter` (module docstring)."""
 
-    def __init__(self, writer: BagWriter, topics: Sequence[str], *, name: str = NODE_NAME) -> None:
-        super().__init__(name)
+    def __init__(self, writer: BagWriter, topics: Sequence[str], *, name: str = NODE_NAME,
+                 cell: str = "") -> None:
+        super().__init__(name, namespace=cell or "/")
         self.writer = writer
+        self.cell = cell  # the topics of this cell, stored under the table's names
         self.received = 0
         self.specs = {n: topic(n) for n in topics}
         self.registered: set[str] = set()
         for spec in self.specs.values():
-            self.create_subscription(message_class(spec.type), spec.name,
+            self.create_subscription(message_class(spec.type), under(cell, spec.name),
                                      partial(self.on_message, spec.name),
                                      recorder_qos(spec), raw=True)
         self.create_timer(TICK_PERIOD_S, self.on_tick)
@@ -95,7 +99,8 @@ class RecorderNode(Node):
     def register(self, name: str, *, force: bool) -> None:
         """Add the topic's channel with its publishers' offered QoS and type hash."""
         spec = self.specs[name]
-        pubs = [p for p in self.get_publishers_info_by_topic(name) if p.topic_type == spec.type]
+        pubs = [p for p in self.get_publishers_info_by_topic(under(self.cell, name))
+                if p.topic_type == spec.type]
         if not pubs and not force:
             return
         text, store_hash = message_definition(spec.type)
@@ -129,11 +134,20 @@ def drain(node: RecorderNode, limit_s: float = DRAIN_LIMIT_S) -> int:
     return node.received - start
 
 
+def own_publishers(node: RecorderNode) -> int:
+    """Publishers of the recorded topics whose nodes live in the recorder's namespace (its
+    cell's; a global topic such as ``/diagnostics`` also has other cells' publishers)."""
+    ns = node.cell or "/"
+    return sum(p.node_namespace == ns for name in node.specs
+               for p in node.get_publishers_info_by_topic(under(node.cell, name)))
+
+
 def await_leave(node: RecorderNode, limit_s: float) -> bool:
-    """Take messages until no publisher of a recorded topic is left in the graph (or
-    ``limit_s``, which only a publisher that outlives the stop reaches); True when all left."""
+    """Take messages until no publisher of a recorded topic is left in the recorder's
+    namespace (:func:`own_publishers`), or ``limit_s``, which only a publisher that outlives
+    the stop reaches; True when all left."""
     t0 = time.monotonic()
-    while any(node.count_publishers(name) for name in node.specs):
+    while own_publishers(node):
         if time.monotonic() - t0 >= limit_s:
             return False
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -141,7 +155,7 @@ def await_leave(node: RecorderNode, limit_s: float) -> bool:
 
 
 def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
-           stop: Any, leave_wait_s: float = 0.0) -> None:
+           stop: Any, cell: str = "", leave_wait_s: float = 0.0) -> None:
     """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``, then
     take what is left (:func:`await_leave` for ``leave_wait_s`` when it is positive, then
     :func:`drain`); a write that failed ends it with the writer's
@@ -150,7 +164,7 @@ def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
     rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = None
     try:
-        node = RecorderNode(writer, names)
+        node = RecorderNode(writer, names, cell=cell)
         print(f"peel record: recording {len(names)} topics to {writer.path}", file=sys.stderr,
               flush=True)
         while not stop.requested and rclpy.ok() and writer.failure is None:

@@ -25,6 +25,10 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
   ``peel graph --live PORT``); it counts among the readers the bridge and the planner wait for;
 * ``record:=BAG`` adds the recorder (``ros2 run peel_bag peel_recorder --out BAG``, the
   same as ``peel record``; ``ros2 bag record -s mcap`` works too, the bag layout is the same);
+* ``namespace:=/cell_a`` puts the three nodes under ``/cell_a``: every topic
+  (``/cell_a/peel/wrench``, ``/cell_a/clock``, ...) and the planner's services move with them
+  (docs/fleet.md); the recorder records the root cell only, so ``record:=`` needs an empty
+  namespace (``peel fleet --record`` records each cell);
 * the simulator (or the bridge) exits after the K tasks and the learner's last swap
   (``node.exit_when_done``); its exit, or any node's death, shuts the whole launch down (the
   recorder, given the same SIGINT, records until the nodes' publishers have left, then closes
@@ -76,10 +80,15 @@ def _setup(context, *args, **kwargs):
     cfg = os.path.join(get_package_share_directory("peel_bringup"), "config")
     arg = {name: context.launch_configurations[name] for name in (
         "plant", "tasks", "seed", "params", "record", "out", "nachi_host", "nachi_port", "live",
-        "live_host")}
+        "live_host", "namespace")}
+    namespace = arg["namespace"].rstrip("/")
+    if namespace and (arg["record"] or arg["live"]):
+        raise RuntimeError("record:= and live:= serve the root cell only; leave namespace:= "
+                           "empty, or record each cell with: peel fleet --record BAG")
     override = [arg["params"]] if arg["params"] else []
     models = os.path.abspath(os.path.join(arg["out"], "models"))
     bridge, settings = _bridge(arg)
+    settings["node.learner_node"] = f"{namespace}/model_learner_node"  # the producer it waits for
     extra = {
         bridge: settings,
         "peel_planner_node": {"node.seed": int(arg["seed"]), "node.autostart": False,
@@ -91,11 +100,12 @@ def _setup(context, *args, **kwargs):
     for name in (bridge, *NODES[1:]):
         nodes[name] = Node(
             package=name, executable=name, name=name, output="screen",
+            namespace=namespace or None,
             parameters=[os.path.join(cfg, f"{name}.yaml"), *override,
                         {"use_sim_time": True, **extra[name]}],
         )
         actions.append(nodes[name])
-    actions += _manager([*MANAGED, bridge])
+    actions += _manager([f"{namespace}/{n}" if namespace else n for n in (*MANAGED, bridge)])
     if arg["live"]:
         actions.insert(0, _live(arg, override))
     if arg["record"]:
@@ -157,5 +167,8 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("live_host", default_value="127.0.0.1",
                               description="address the live view binds (default: this machine "
                                           "only)"),
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="namespace of the cell's nodes and topics, e.g. "
+                                          "/cell_a (empty: the root, /peel/...)"),
         OpaqueFunction(function=_setup),
     ])

@@ -31,6 +31,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
                   "drive managed nodes: get, set a transition, up (configure + activate)"),
     "live": ("peel_bringup.live_node:main",
              "serve a running graph's live view on a Foxglove WebSocket (127.0.0.1)"),
+    "fleet": ("peel_bringup.fleet:main", "K peeling cells under their own namespaces and one learner"),
+    "fleet-report": ("peel_bringup.fleet_report:main", "where the wall time of peel fleet runs goes (JSON)"),
     "record": ("peel_bag.recorder_cli:main", "record the /peel topics and /clock to an MCAP bag"),
     "nachi-emulator": ("peel_nachi_emulator.emulator_cli:main",
                        "emulate the Nachi controller (NACHI-PEEL 1 over TCP) over the plant"),
@@ -52,7 +54,7 @@ def _usage() -> str:
 
 #: Commands whose process ends at once after its work (files closed, children stopped): the
 #: interpreter's teardown of torch took 1-1.5 s after every demo on a loaded 2-core machine.
-FAST_EXIT = frozenset({"demo", "graph"})
+FAST_EXIT = frozenset({"demo", "graph", "fleet"})
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -141,8 +141,9 @@ MODEL = obj({"version": INTEGER, "sha256": STRING, "path": STRING, "producer": S
              "task": INTEGER_OR_NULL}, "peel.live.Model",
             "the model the planner plans with (/peel/model_info, decoded)")
 UPDATE = obj({"producer": STRING, "task": INTEGER, "status": STRING, "reason": STRING,
-              "sha256": STRING_OR_NULL, "path": STRING_OR_NULL, "version": INTEGER_OR_NULL},
-             "peel.live.ModelUpdate", "the learner's update after a task (/peel/model_update)")
+              "sha256": STRING_OR_NULL, "path": STRING_OR_NULL, "version": INTEGER_OR_NULL,
+              "cell": STRING_OR_NULL}, "peel.live.ModelUpdate",
+             "the learner's update after a task (/peel/model_update)")
 #: Per-sample columns of a task report, SI (the trajectory codec's wire units).
 SAMPLE_COLUMNS = {"t_s": ("t", None), "q_m": ("q", units.mm_to_m),
                   "v_mps": ("v", units.mmps_to_mps), "u_mps": ("u", units.mmps_to_mps),
@@ -206,7 +207,7 @@ def update_report(rep: Any) -> Message:
     """A :class:`~peel_msgs_py.modelinfo.UpdateReport` as a message."""
     return {"producer": rep.producer, "task": int(rep.task), "status": rep.status,
             "reason": rep.reason, "sha256": rep.sha256, "path": rep.path,
-            "version": rep.version}
+            "version": rep.version, "cell": rep.cell}
 
 
 def _peak(values: Sequence[float]) -> float:

@@ -40,8 +40,10 @@ class GraphMonitor(Node):
     other topic flowed, and in a demo run the launcher saw v0 only after task 1 had finished.
     """
 
-    def __init__(self, learner: str) -> None:
-        super().__init__(NODE_NAME)
+    def __init__(self, learner: str, cell: str = "") -> None:
+        # a cell's monitor (peel fleet) reads that cell's topics: the table's names moved
+        super().__init__(NODE_NAME, namespace=cell or "/",
+                         cli_args=topics.namespace_remaps() if cell else None)
         self.updates = UpdateWait(learner)
         self.trajectories: list[Any] = []
         self.version: int | None = None
@@ -121,6 +123,13 @@ def open_monitor(learner: str) -> GraphMonitor:
     """rclpy up (the launcher keeps its own SIGINT handling) and the monitor node created."""
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
     return GraphMonitor(learner)
+
+
+def open_cell_monitors(cells: dict[str, str]) -> list[GraphMonitor]:
+    """``peel fleet``: rclpy up and one monitor per cell (cell namespace -> the producer name
+    its updates carry)."""
+    rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
+    return [GraphMonitor(producer, cell) for cell, producer in cells.items()]
 
 
 def spin_once(mon: GraphMonitor, timeout_s: float) -> None:

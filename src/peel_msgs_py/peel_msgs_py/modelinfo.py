@@ -14,7 +14,9 @@ task k, by identity (docs/graph.md, "The model swap"). No ROS here.
 * :class:`UpdateReport` (``/peel/model_update``, published by the learner once per finished
   task): ``swapped`` (the planner accepted it), ``refused`` (the planner's reason), ``failed``
   (Algorithm 1 raised, or its model predicts non-finite forces: never offered), ``skipped``
-  (nothing to learn from, e.g. a trajectory shorter than one slice).
+  (nothing to learn from, e.g. a trajectory shorter than one slice). A learner that serves
+  several cells (docs/fleet.md) publishes one report per update and cell on that cell's topic,
+  the cell's namespace in ``cell``.
 * :class:`UpdateWait`: the simulator waits between tasks, and ``peel graph`` after the last
   one, for the outcome of the learner's update after task k: the planner's record of exactly
   that update (producer and task), or the learner's report that it failed, was refused or
@@ -112,14 +114,16 @@ class UpdateReport:
     sha256: str | None = None
     path: str | None = None
     version: int | None = None  # the planner's version, once it is known to have swapped
+    cell: str | None = None  # the namespace of the cell whose planner this reports on (fleet)
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
             raise PeelError(f"model update: status {self.status!r} is not one of {STATUSES}")
         _check_int("model update", "task", self.task, 0, False)
         _check_int("model update", "version", self.version, 0, True)
-        for name in ("producer", "reason", "sha256", "path"):
-            _check_str("model update", name, getattr(self, name), name in ("sha256", "path"))
+        for name in ("producer", "reason", "sha256", "path", "cell"):
+            _check_str("model update", name, getattr(self, name),
+                       name in ("sha256", "path", "cell"))
 
     @property
     def failed(self) -> bool:

@@ -178,6 +178,30 @@ STATUS_TOPICS: dict[str, TopicSpec] = {spec.name: spec for spec in _STATUS_TABLE
 RECORDED_TOPICS: tuple[str, ...] = tuple(TOPICS)
 
 
+def namespace_remaps() -> list[str]:
+    """ROS arguments that make every topic of the table relative to the node's namespace.
+
+    ``-r /peel/wrench:=peel/wrench`` (and so on for each topic of :data:`TOPICS`, ``/clock``
+    included, and rclpy's own ``/clock`` subscription of ``use_sim_time`` with it): a name
+    whose replacement is relative is resolved against the node's namespace, so under the root
+    namespace every name stays exactly as in the table, and ``-r __ns:=/cell_a`` moves the
+    whole cell to ``/cell_a/peel/wrench``, ``/cell_a/clock``, ... . ``/diagnostics`` stays
+    global (ROS's standard topic; every status names its node, namespace included). Every
+    peel node's ``main`` appends these after the user's own rules, which therefore win.
+    """
+    args = ["--ros-args"]
+    for name in TOPICS:
+        args += ["-r", f"{name}:={name.lstrip('/')}"]
+    return args
+
+
+def under(namespace: str, name: str) -> str:
+    """The absolute name of table topic ``name`` in a node of ``namespace`` (``""`` or ``"/"``
+    = the root: the table's name itself): ``under("/cell_a", WRENCH) == "/cell_a/peel/wrench"``."""
+    ns = namespace.rstrip("/")
+    return f"{ns}{name}" if ns else name
+
+
 def topic(name: str) -> TopicSpec:
     """The spec of a topic of the table; :class:`PeelError` naming it when unknown."""
     try:

@@ -5,7 +5,9 @@
 
 * Parameter overrides are checked by name before ROS starts
   (:func:`peel_msgs_py.params.ros_args_overrides`: unknown sections and names refused).
-* ``rclpy.init``; the node is built (parameters declared with descriptors; a refused value
+* ``rclpy.init`` with the topics of the table relative to the node's namespace
+  (:func:`peel_msgs_py.topics.namespace_remaps`: ``-r __ns:=/cell_a`` moves a whole cell);
+  the node is built (parameters declared with descriptors; a refused value
   raises :class:`~peel_msgs_py.errors.ParameterError`) and spun until it says it is done
   (``node.done``) or a signal arrives.
 * Bad input of any kind prints ``<node>: error: <message>`` (one line) and exits 2 (a managed
@@ -43,6 +45,7 @@ from rclpy.node import Node
 from .. import held_signals
 from ..errors import PeelError
 from ..params import ros_args_overrides
+from ..topics import namespace_remaps
 
 #: How often (s) the spin loop looks at ``node.done``.
 POLL_S = 0.2
@@ -125,7 +128,7 @@ def run_node(name: str, make: Callable[[], Node], args: Sequence[str] | None = N
     held_signals.release()  # a signal held since the process started (launcher) arrives now
     try:
         ros_args_overrides(argv, name)
-        rclpy.init(args=argv)
+        rclpy.init(args=[*argv, *namespace_remaps()])  # topics move with the namespace
         started = True
         if signals.received is None:  # else stopped before ROS started: nothing to build
             node = make()
