@@ -53,10 +53,12 @@ def cells(ros_domain: str) -> Iterator[None]:
 
 
 def _node_topics(node: rclpy.node.Node, name: str, namespace: str) -> set[str]:
-    """Topics of node ``namespace/name`` (publishers and subscriptions), without ROS's own."""
+    """Topics of node ``namespace/name`` (publishers and subscriptions), without ROS's own
+    (and a managed node's ``<node>/transition_event``, which moves with the node's name)."""
     pubs = node.get_publisher_names_and_types_by_node(name, namespace)
     subs = node.get_subscriber_names_and_types_by_node(name, namespace)
-    return {t for t, _ in (*pubs, *subs)} - STANDARD
+    own = f"{namespace.rstrip('/')}/{name}/transition_event"
+    return {t for t, _ in (*pubs, *subs)} - STANDARD - {own}
 
 
 def _listing(node: rclpy.node.Node) -> dict[tuple[str, str], set[str]]:
@@ -87,7 +89,8 @@ def test_a_namespace_moves_the_whole_cell_and_none_keeps_the_table_names(cells: 
         found = _listing(node)
         table = set(topics.TOPICS)
         seen = {t for t, _ in node.get_topic_names_and_types()} - STANDARD
-        assert seen == table | {topics.under("/cell_a", n) for n in table}
+        events = {f"{ns}/{n}/transition_event" for ns in ("", "/cell_a") for n in NODES}
+        assert seen == table | {topics.under("/cell_a", n) for n in table} | events
         for name in NODES:  # each node's own endpoints: its cell's names, nowhere else
             root, moved = found[(name, "/")], found[(name, "/cell_a")]
             assert root and root <= table, (name, root)
