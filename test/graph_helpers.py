@@ -46,14 +46,12 @@ def read_bag_mcap_ros2(bag: Path) -> dict[str, list[object]]:
 
 
 def assert_clean_logs(run_dir: Path) -> None:
-    """Every node stopped on one signal, cleanly: no traceback in any log of the run, and the
-    recorder (if any) ended when the nodes' publishers had left, not at its wait's limit."""
+    """Every node stopped on one signal, cleanly: no traceback in any log of the run."""
     logs = sorted((run_dir / "logs").glob("*.log"))
     assert len(logs) >= 3
     for log in logs:
         text = log.read_text(errors="replace")
         assert "Traceback" not in text and "KeyboardInterrupt" not in text, (log.name, text[-2000:])
-        assert "publishers still on the graph" not in text, (log.name, text[-2000:])
 
 
 class Lines:

@@ -97,7 +97,7 @@ def test_launch_file_names_existing_executables_nodes_and_files(
         module, func = target.split(":")
         assert callable(getattr(importlib.import_module(module), func))  # ... and imports
         if name == "peel_recorder":
-            assert node.kwargs["arguments"] == ["--out", record, "--await-publishers", "10"]
+            assert node.kwargs["arguments"] == ["--out", record]
             continue
         if name == "peel_lifecycle_manager":  # planner first, the bridge last
             ns = f"{namespace}/" if namespace else ""

@@ -55,10 +55,6 @@ def _parser() -> ArgumentParser:
                    metavar="S", help="flush a chunk when it is this old (default %(default)s s)")
     p.add_argument("--compression", choices=sorted(bagmod.COMPRESSIONS), default="lz4",
                    help="chunk compression (default %(default)s)")
-    p.add_argument("--await-publishers", type=positive_float, default=0.0, metavar="S",
-                   help="on a stop, first record until every publisher of a recorded topic has "
-                        "left the graph, for at most S seconds (for a launcher that stops the "
-                        "nodes before the recorder; default: no wait)")
     return p
 
 
@@ -110,8 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     try:
         with _Stop() as stop:
-            record(writer, names, args.duration, stop, cell=args.cell.rstrip("/"),
-                   leave_wait_s=args.await_publishers)
+            record(writer, names, args.duration, stop, cell=args.cell.rstrip("/"))
     except bagmod.BagWriteError:
         pass  # in writer.failure
     finally:

@@ -19,10 +19,7 @@ The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' ow
 a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
 what its DDS reader already holds instead of losing the oldest. On a stop the recorder first
 takes every message its readers hold (:func:`drain`), so a message that reached the recorder's
-process before the stop is in the bag. A launcher that stops the recorder after the nodes it
-records (``peel graph``) passes ``leave_wait_s``: the recorder then first takes messages until
-every publisher of a recorded topic has left the graph (:func:`await_leave`), so what a node sent
-before it exited is read before the drain, however loaded the machine.
+process before the stop is in the bag.
 """
 
 from __future__ import annotations
@@ -134,31 +131,10 @@ def drain(node: RecorderNode, limit_s: float = DRAIN_LIMIT_S) -> int:
     return node.received - start
 
 
-def own_publishers(node: RecorderNode) -> int:
-    """Publishers of the recorded topics whose nodes live in the recorder's namespace (its
-    cell's; a global topic such as ``/diagnostics`` also has other cells' publishers)."""
-    ns = node.cell or "/"
-    return sum(p.node_namespace == ns for name in node.specs
-               for p in node.get_publishers_info_by_topic(under(node.cell, name)))
-
-
-def await_leave(node: RecorderNode, limit_s: float) -> bool:
-    """Take messages until no publisher of a recorded topic is left in the recorder's
-    namespace (:func:`own_publishers`), or ``limit_s``, which only a publisher that outlives
-    the stop reaches; True when all left."""
-    t0 = time.monotonic()
-    while own_publishers(node):
-        if time.monotonic() - t0 >= limit_s:
-            return False
-        rclpy.spin_once(node, timeout_sec=0.05)
-    return True
-
-
 def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
-           stop: Any, cell: str = "", leave_wait_s: float = 0.0) -> None:
+           stop: Any, cell: str = "") -> None:
     """Spin a :class:`RecorderNode` until ``duration_s`` (wall) or ``stop.requested``, then
-    take what is left (:func:`await_leave` for ``leave_wait_s`` when it is positive, then
-    :func:`drain`); a write that failed ends it with the writer's
+    take what its readers hold (:func:`drain`); a write that failed ends it with the writer's
     :class:`~peel_bag.bag.BagWriteError`."""
     t0 = time.monotonic()
     rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
@@ -172,10 +148,6 @@ def record(writer: BagWriter, names: Sequence[str], duration_s: float | None,
                 break
             rclpy.spin_once(node, timeout_sec=0.05)
         if rclpy.ok() and writer.failure is None:
-            if leave_wait_s > 0 and not await_leave(node, leave_wait_s):
-                print(f"peel record: warning: publishers still on the graph {leave_wait_s:g} s "
-                      "after the stop; recording what they sent so far", file=sys.stderr,
-                      flush=True)
             drain(node)
     finally:
         if node is not None:

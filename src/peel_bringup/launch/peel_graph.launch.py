@@ -31,8 +31,7 @@ The same graph as ``peel graph`` (docs/graph.md), with ROS 2 launch instead of t
   namespace (``peel fleet --record`` records each cell);
 * the simulator (or the bridge) exits after the K tasks and the learner's last swap
   (``node.exit_when_done``); its exit, or any node's death, shuts the whole launch down (the
-  recorder, given the same SIGINT, records until the nodes' publishers have left, then closes
-  its bag).
+  recorder closes its bag on the SIGINT that launch sends).
 """
 
 from __future__ import annotations
@@ -111,7 +110,7 @@ def _setup(context, *args, **kwargs):
     if arg["record"]:
         actions.insert(0, Node(package="peel_bag", executable="peel_recorder",
                                name="peel_recorder", output="screen", sigterm_timeout="20",
-                               arguments=["--out", arg["record"], "--await-publishers", "10"]))
+                               arguments=["--out", arg["record"]]))
     # the simulator or the bridge finishing (or any node dying) ends the launch
     for name in nodes:
         actions.append(RegisterEventHandler(OnProcessExit(

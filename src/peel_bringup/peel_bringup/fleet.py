@@ -48,7 +48,6 @@ from .fleet_report import update_times
 from .graph import (
     BAD_INPUT,
     LEARNER,
-    LEAVE_WAIT_S,
     UPDATE_FAILED,
     Child,
     _Interrupt,
@@ -175,8 +174,7 @@ def children_of(run: FleetRun) -> tuple[list[Child], dict[str, list[Child]]]:
         if run.bag is not None:
             kids.append(Child(f"{cell}/recorder", [
                 sys.executable, "-m", "peel_bag.recorder_cli", "--out",
-                str(run.bag / cell.strip("/")), "--cell", cell, "--await-publishers",
-                f"{LEAVE_WAIT_S:g}"], here / "recorder.log"))
+                str(run.bag / cell.strip("/")), "--cell", cell], here / "recorder.log"))
         for name in ("peel_planner_node", "peel_sim_node"):
             cmd = [*node_command(name, run.override, sets[cell][name]), "-r", f"__ns:={cell}"]
             kids.append(Child(f"{cell}/{name}", cmd, here / f"{name}.log"))

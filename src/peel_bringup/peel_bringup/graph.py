@@ -80,9 +80,6 @@ NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
 #: The node that stands in for ``peel_sim_node`` with ``--plant nachi`` (docs/nachi.md).
 NACHI = "peel_nachi_bridge"
 RECORDER = "recorder"
-#: Longest time the stopped recorder records on, waiting for the stopped nodes' publishers to
-#: leave the graph (s); only a publisher that outlives the graph (not one of its nodes) needs it.
-LEAVE_WAIT_S = 10.0
 #: The live view's process (``--live``, :mod:`.live_node`), its default port (Foxglove's) and the
 #: only address it binds by default.
 LIVE = "peel_live"
@@ -455,8 +452,7 @@ def children_of(run: Run) -> list[Child]:
     children: list[Child] = []
     if run.bag is not None:
         children.append(Child(RECORDER, [sys.executable, "-m", "peel_bag.recorder_cli",
-                                         "--out", str(run.bag), "--await-publishers",
-                                         f"{LEAVE_WAIT_S:g}"], logs / "recorder.log"))
+                                         "--out", str(run.bag)], logs / "recorder.log"))
     if run.live is not None:
         children.append(Child(LIVE, live_command(run), logs / f"{LIVE}.log"))
     bridge = NACHI if run.plant == "nachi" else "peel_sim_node"
@@ -633,7 +629,8 @@ def tear_down(children: list[Child], timeout_s: float) -> int | None:
         child.stop(timeout_s, signalled=True)
     code = None
     for child in children:
-        if child.name == RECORDER:  # it records until the nodes' publishers have left
+        if child.name == RECORDER:
+            time.sleep(0.5)  # let the last messages reach the recorder
             code = child.stop(timeout_s)
     return code
 
