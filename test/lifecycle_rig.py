@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -24,10 +25,13 @@ from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, Int64, String
 
 from peel_msgs_py import codec, topics
+from peel_msgs_py.lifecycle import TRANSITIONS
 from peel_msgs_py.modelinfo import ModelRecord
 from peel_msgs_py.units import mmps_to_mps
 
 qos = topics.qos_profile
+#: Seconds an unanswered lifecycle request waits before it is followed up (class Outside).
+RESEND_S = 5.0
 
 
 def wait(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -52,6 +56,7 @@ class Outside:
         self.commands: list[int] = []  # stamp ns of every /peel/cmd_vel
         self.trajectories: list[Float64MultiArray] = []
         self.diagnostics: list[tuple[str, int, str]] = []  # (name, level, message)
+        self.clients: dict[str, Any] = {}  # the lifecycle service clients, by service name
         n = self.node
         n.create_subscription(WrenchStamped, topics.WRENCH, self.on_wrench,
                               qos(topics.WRENCH, subscriber=True))
@@ -121,26 +126,50 @@ class Outside:
         return self.node.count_publishers(topic)
 
     # -- the standard lifecycle services --------------------------------------------------------
-    def _call(self, target: str, kind: type, name: str, req: object, timeout_s: float) -> object:
-        client = self.node.create_client(kind, f"/{target}/{name}")
-        try:
-            assert client.wait_for_service(timeout_sec=timeout_s), f"no /{target}/{name}"
-            future = client.call_async(req)
-            wait(future.done, timeout_s, f"answer of /{target}/{name}")
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+    # A response can be lost while discovery of a client is under way (ros2/rmw_fastrtps#390),
+    # so an unanswered get_state is asked again every RESEND_S, and an unanswered change_state
+    # is followed by get_state: its goal state is the answer, its start state a lost request.
+    def _client(self, target: str, kind: type, name: str) -> Any:
+        key = f"/{target}/{name}"
+        if key not in self.clients:
+            self.clients[key] = self.node.create_client(kind, key)
+        client = self.clients[key]
+        assert client.wait_for_service(timeout_sec=120.0), f"no {key}"
+        return client
 
     def state(self, target: str, timeout_s: float = 120.0) -> str:
-        """``target``'s state label (``get_state``)."""
-        res = self._call(target, GetState, "get_state", GetState.Request(), timeout_s)
-        return res.current_state.label  # type: ignore[attr-defined]
+        """``target``'s state label (``get_state``, asked again while unanswered)."""
+        client = self._client(target, GetState, "get_state")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            future = client.call_async(GetState.Request())
+            resend = time.monotonic() + RESEND_S
+            while not future.done() and time.monotonic() < min(resend, deadline):
+                time.sleep(0.05)
+            if future.done():
+                return future.result().current_state.label  # type: ignore[union-attr]
+            assert time.monotonic() < deadline, \
+                f"no answer of /{target}/get_state within {timeout_s:g} s"
 
     def change(self, target: str, transition: str, timeout_s: float = 120.0) -> bool:
-        """``change_state`` by label; its ``success``."""
+        """``change_state`` by label; its ``success`` (or get_state's, after a lost answer)."""
+        client = self._client(target, ChangeState, "change_state")
         req = ChangeState.Request()
         req.transition.label = transition
-        return bool(self._call(target, ChangeState, "change_state", req, timeout_s).success)  # type: ignore[attr-defined]
+        starts, goal = TRANSITIONS[transition]
+        deadline = time.monotonic() + timeout_s
+        while True:
+            future = client.call_async(req)
+            resend = time.monotonic() + RESEND_S
+            while not future.done() and time.monotonic() < min(resend, deadline):
+                time.sleep(0.05)
+            if future.done():
+                return bool(future.result().success)  # type: ignore[union-attr]
+            assert time.monotonic() < deadline, \
+                f"no answer of /{target}/change_state within {timeout_s:g} s"
+            label = self.state(target, deadline - time.monotonic())
+            if label == goal or label not in starts:
+                return label == goal
 
     def close(self) -> None:
         self._stop.set()

@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import pytest
 
-from peel_bringup.lifecycle_node import Sequence, bring_up, transitions
+from peel_bringup.lifecycle_node import PROBE_S, Sequence, bring_up, transitions
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.lifecycle import ConfigureError, goal_state
 from peel_nachi_bridge.config import load_config
@@ -63,33 +63,55 @@ def test_a_listening_controller_is_connected_and_its_hello_checked() -> None:
 
 
 class Done:
-    """A finished future with ``success``."""
+    """A future with ``success`` (and ``current_state.label``); ``lost``: never answered."""
 
-    def __init__(self, success: bool) -> None:
-        self._result = type("R", (), {"success": success})()
+    def __init__(self, success: bool, label: str = "", lost: bool = False) -> None:
+        state = type("S", (), {"label": label})()
+        self._result = type("R", (), {"success": success, "current_state": state})()
+        self.lost = lost
 
     def done(self) -> bool:
-        return True
+        return not self.lost
 
     def result(self) -> object:
         return self._result
 
 
 class FakeLifecycle:
-    """Stands in for :class:`~peel_bringup.lifecycle_node.Lifecycle`: records the requests;
-    ``refuse`` names (node, transition) answered with failure, ``absent`` nodes never appear."""
+    """Stands in for :class:`~peel_bringup.lifecycle_node.Lifecycle`: records the requests and
+    keeps each node's state; ``refuse`` names (node, transition) answered with failure,
+    ``absent`` nodes never appear; ``lose_answer``: the transition runs, its answer is lost
+    (the first time); ``lose_request``: the first request never arrives."""
 
-    def __init__(self, refuse: tuple[tuple[str, str], ...] = (), absent: tuple[str, ...] = ()):
+    def __init__(self, refuse: tuple[tuple[str, str], ...] = (), absent: tuple[str, ...] = (),
+                 lose_answer: tuple[tuple[str, str], ...] = (),
+                 lose_request: tuple[tuple[str, str], ...] = ()) -> None:
         self.asked: list[tuple[str, str]] = []
+        self.probes: list[str] = []
         self.refuse, self.absent = refuse, absent
+        self.lose_answer, self.lose_request = set(lose_answer), set(lose_request)
+        self.states: dict[str, str] = {}
 
     def ready(self, target: str) -> bool:
         return target not in self.absent
 
     def change(self, target: str, transition: str) -> Done:
-        goal_state(transition)
-        self.asked.append((target, transition))
-        return Done((target, transition) not in self.refuse)
+        goal = goal_state(transition)
+        key = (target, transition)
+        self.asked.append(key)
+        if key in self.lose_request:
+            self.lose_request.discard(key)
+            return Done(False, lost=True)
+        ok = key not in self.refuse
+        if ok:
+            self.states[target] = goal
+        lost = key in self.lose_answer
+        self.lose_answer.discard(key)
+        return Done(ok, lost=lost)
+
+    def state(self, target: str) -> Done:
+        self.probes.append(target)
+        return Done(False, self.states.get(target, "unconfigured"))
 
 
 def _run(seq: Sequence, until: float = 10.0) -> None:
@@ -128,6 +150,37 @@ def test_a_node_that_never_appears_is_late_after_the_timeout() -> None:
     assert seq.late == ["peel_nachi_bridge"] and seq.failed == []
     assert seq.error == ("peel_nachi_bridge: no /peel_nachi_bridge/change_state service within "
                          "2 s")
+
+
+def test_a_lost_answer_is_taken_from_get_state_and_not_sent_again() -> None:
+    lc = FakeLifecycle(lose_answer=(("peel_planner_node", "configure"),))
+    seq = bring_up(lc, ["peel_planner_node"], timeout_s=60.0)  # type: ignore[arg-type]
+    seq.step(0.0)
+    seq.step(PROBE_S - 0.5)
+    assert lc.probes == [] and not seq.done  # no get_state before PROBE_S
+    _run(seq, until=60.0)
+    assert seq.done and seq.error is None, seq.error
+    assert lc.asked == [("peel_planner_node", "configure"), ("peel_planner_node", "activate")]
+    assert lc.probes == ["peel_planner_node"]
+
+
+def test_a_lost_request_is_sent_again_once_get_state_shows_it_never_ran() -> None:
+    lc = FakeLifecycle(lose_request=(("peel_sim_node", "activate"),))
+    lc.states["peel_sim_node"] = "inactive"
+    seq = transitions(lc, "activate", ["peel_sim_node"], timeout_s=60.0)  # type: ignore[arg-type]
+    _run(seq, until=60.0)
+    assert seq.done and seq.error is None, seq.error
+    assert lc.asked == [("peel_sim_node", "activate")] * 2 and lc.states["peel_sim_node"] == "active"
+
+
+def test_a_refusal_whose_answer_was_lost_ends_the_wave_at_the_next_refusal() -> None:
+    lc = FakeLifecycle(refuse=(("peel_sim_node", "configure"),),
+                       lose_answer=(("peel_sim_node", "configure"),))
+    seq = transitions(lc, "configure", ["peel_sim_node"], timeout_s=20.0)  # type: ignore[arg-type]
+    _run(seq, until=30.0)
+    # the refusal's answer was lost, get_state says unconfigured: sent again, and its second
+    # answer (a refusal) ends the wave
+    assert seq.failed == ["peel_sim_node"] and len(lc.asked) == 2
 
 
 def test_an_unknown_transition_is_refused_in_one_line() -> None:

@@ -17,6 +17,15 @@ ends the sequence with :attr:`Sequence.error`; :attr:`Sequence.failed` names the
 configure failed, which ``peel graph`` shuts down (a finalized node exits with its error), and
 :attr:`Sequence.late` the others that did not come up. :func:`drive` is the rclpy side of
 ``peel lifecycle`` (:mod:`.lifecycle_cli`).
+
+**A lost answer is asked after.** A service's response can be lost while DDS discovery of a
+fresh client is still under way (the server's response writer not yet matched to the client's
+reader: ros2/rmw_fastrtps#390, ros2/rmw_cyclonedds#187), seen here as a ``get_state`` of a
+loaded CI machine that never answered. So a transition unanswered after :data:`PROBE_S` is
+followed by ``get_state`` (again every :data:`PROBE_S` while unanswered; a node's
+single-threaded executor answers it after the transition ran): the goal state counts as success,
+the state the transition starts from as a lost request, sent again (at most :data:`SENDS` in
+all). ``get_state`` alone is simply asked again.
 """
 
 from __future__ import annotations
@@ -33,10 +42,14 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args as _remove_ros_args
 
-from peel_msgs_py.lifecycle import FINALIZED, goal_state
+from peel_msgs_py.lifecycle import FINALIZED, TRANSITIONS, goal_state
 
 #: The node name of ``peel lifecycle`` (``peel_lifecycle_manager`` under the launch file).
 NODE_NAME = "peel_lifecycle"
+#: Seconds an unanswered request waits before ``get_state`` is asked (module docstring).
+PROBE_S = 5.0
+#: How many times one transition is sent at most (the first and the resends of a lost one).
+SENDS = 3
 
 
 def absolute(target: str) -> str:
@@ -86,12 +99,42 @@ class Lifecycle:
 
 @dataclass
 class Step:
-    """One transition of one node in a wave."""
+    """One transition of one node in a wave, with the ``get_state`` that follows an answer not
+    come within :data:`PROBE_S` (module docstring)."""
 
     target: str
     transition: str
-    future: Future | None = None
+    future: Future | None = None  # the latest change_state sent
     success: bool | None = None
+    sent: list[Future] = field(default_factory=list)  # every change_state sent
+    asked_s: float = 0.0  # when the latest request (change_state or get_state) went out
+    probe: Future | None = None
+
+    def send(self, lc: Lifecycle, now: float) -> None:
+        self.future = lc.change(self.target, self.transition)
+        self.sent.append(self.future)
+        self.asked_s = now
+
+    def advance(self, lc: Lifecycle, now: float) -> None:
+        """Collect an answer; ask ``get_state`` after a silence; resend a lost request."""
+        answers = [f.result() for f in self.sent if f.done()]
+        if any(a is not None and a.success for a in answers):
+            self.success = True
+        elif self.future is not None and self.future.done():
+            self.success = False  # refused (a resend only follows get_state's start state)
+        elif self.probe is not None and self.probe.done():
+            self._probed(lc, self.probe.result(), now)
+        elif now - self.asked_s > PROBE_S:
+            self.probe, self.asked_s = lc.state(self.target), now
+
+    def _probed(self, lc: Lifecycle, result: Any, now: float) -> None:
+        self.probe = None
+        label = result.current_state.label if result is not None else None
+        starts, goal = TRANSITIONS[self.transition]
+        if label == goal:
+            self.success = True  # it ran; its answer was lost
+        elif label in starts and len(self.sent) < SENDS:
+            self.send(lc, now)  # the request was lost
 
 
 @dataclass
@@ -124,10 +167,9 @@ class Sequence:
         wave = self.waves[0]
         for s in wave:
             if s.future is None and self.lc.ready(s.target):
-                s.future = self.lc.change(s.target, s.transition)
-            elif s.future is not None and s.success is None and s.future.done():
-                result = s.future.result()
-                s.success = bool(result is not None and result.success)
+                s.send(self.lc, now)
+            elif s.future is not None and s.success is None:
+                s.advance(self.lc, now)
         self._check(wave, now)
 
     def _check(self, wave: list[Step], now: float) -> None:
@@ -220,11 +262,13 @@ def spin_until(node: Node, seq: Sequence) -> None:
 def states(lc: Lifecycle, nodes: list[str], timeout_s: float) -> dict[str, str]:
     """Each node's state label by its full name (``unknown``: no answer within ``timeout_s``)."""
     futures: dict[str, Any] = {}
+    asked: dict[str, float] = {}
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    while (now := time.monotonic()) < deadline:
         for n in nodes:
-            if n not in futures and lc.ready(n):
-                futures[n] = lc.state(n)
+            lost = n in futures and not futures[n].done() and now - asked[n] > PROBE_S
+            if (n not in futures and lc.ready(n)) or lost:
+                futures[n], asked[n] = lc.state(n), now  # a lost answer: asked again
         if len(futures) == len(nodes) and all(f.done() for f in futures.values()):
             break
         _spin(lc.node, 0.05)
