@@ -72,11 +72,12 @@ class Rig:
         self.lock = threading.Lock()
         self.trajectories: list[Float64MultiArray] = []
         self.bag = BagWriter(bag).open()
+        self.subs = {}
         for name, cls in TYPES.items():
             spec = topics.topic(name)
             self.bag.add_topic(name, spec.type, [spec.qos])
-            self.node.create_subscription(cls, name, self._recorder(name),
-                                          qos(name, subscriber=True))
+            self.subs[name] = self.node.create_subscription(cls, name, self._recorder(name),
+                                                            qos(name, subscriber=True))
         self.pub_cmd = self.node.create_publisher(TwistStamped, topics.CMD_VEL,
                                                   qos(topics.CMD_VEL))
         self.pub_version = self.node.create_publisher(Int64, topics.MODEL_VERSION,
@@ -99,6 +100,14 @@ class Rig:
         rec = ModelRecord(version, f"{version:064x}", f"rig_v{version}.safetensors", producer, task)
         self.pub_version.publish(Int64(data=version))
         self.pub_info.publish(String(data=rec.to_json()))
+
+    def wait_matched(self, name: str, publishers: int, timeout_s: float = 120.0) -> None:
+        """Wait until the recorder's reader of ``name`` has matched ``publishers`` writers (a
+        node's publisher matched late loses its first messages to this bag)."""
+        deadline = time.monotonic() + timeout_s
+        while self.subs[name].get_publisher_count() < publishers:
+            assert time.monotonic() < deadline, f"{publishers} publishers of {name} not matched"
+            time.sleep(0.05)
 
     def _spin(self) -> None:
         while not self._stop.is_set():

@@ -3,7 +3,9 @@
 ``peel graph`` runs one task on the simulator with a resistance the pretrained model lacks
 (``--effect peel_sim_node.example_effects:hose_drag``), the shipped model in the planner and
 the learner, the planner at (N, H) = (50, 5) and the learner's fast step on (``online.fast_every``
-5: one per control period). The bag shows what the planner planned with and when:
+5: one per control period), the simulator at real time (``node.real_time_factor`` 1: in
+lockstep alone the 9 s task can pass in half a second of wall time, before the learner's first
+fast step is done). The bag shows what the planner planned with and when:
 
 * the planner swapped fast models in during the task, each named on ``/peel/model_info`` and in
   the trajectory's meta by its fast step (task, step, fitted and checked samples);
@@ -52,6 +54,7 @@ peel_sim_node:
     node:
       task_slot_s: 30.0
       cmd_timeout_s: 5.0
+      real_time_factor: 1.0  # as on the robot: the fast step runs beside a task of wall seconds
 model_learner_node:
   ros__parameters:
     online:

@@ -137,6 +137,7 @@ def test_full_tasks_with_the_planner_and_the_learner(tmp_path: Path, ros_domain:
         _node("model_learner_node", "--params-file", str(override), "-p", "use_sim_time:=true",
               "-p", f"node.out_dir:={tmp_path / 'models'}"))]
     try:
+        rig.wait_matched(topics.CMD_VEL, 1)  # the planner's commands all reach the bag
         cmd = bridge_cmd(emu.port, **{
             "node.tasks": 2, "node.exit_when_done": True, "node.wait_model_s": 120.0,
             "node.wait_planner_s": 120.0, "node.min_subscribers": 2,
@@ -164,8 +165,7 @@ def test_full_tasks_with_the_planner_and_the_learner(tmp_path: Path, ros_domain:
         planned = [round(u, 4) for u in cmd_vel["u_mmps"][cmd_vel["task"] == k]]
         sent = [round(e.data["u"], 4) for e in accepted if e.data["task"] == k]
         # the V lines the controller got are the planner's commands (m/s on the wire, mm/s on
-        # the line), in order; the rig's recorder may have matched the planner a little late
-        # and the planner's last command (after DONE) is not forwarded
+        # the line), in order; the planner's last command (after DONE) is not forwarded
         assert len(sent) >= 4 and len(planned) >= 4
         body = planned[:-1]
         assert any(sent[i:i + len(body)] == body for i in range(len(sent))), (sent, planned)

@@ -17,14 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
-
-from peel_msgs_py import codec, topics
-from peel_msgs_py.errors import PeelError
-from peel_msgs_py.ros.messages import stamp_ns
+from peel_msgs_py.ros.state_topics import StateTopics
 from peel_msgs_py.trajectory import Trajectory
-from peel_msgs_py.units import m_to_mm, mps_to_mmps
-from peel_msgs_py.wire import DropLog
 
 from .in_peel import InPeel
 
@@ -36,38 +30,15 @@ class InPeelTopics:
                  swap: Callable[[Path], tuple[bool, str]], closing: threading.Event) -> None:
         self.node, self.in_peel, self.lock, self.swap, self.closing = (
             node, in_peel, lock, swap, closing)
-        qos = topics.qos_profile
-        node.create_subscription(WrenchStamped, topics.WRENCH, self.on_wrench,
-                                 qos(topics.WRENCH, subscriber=True))
-        node.create_subscription(TwistStamped, topics.TWIST, self.on_twist,
-                                 qos(topics.TWIST, subscriber=True))
-        node.create_subscription(PoseStamped, topics.POSE, self.on_pose,
-                                 qos(topics.POSE, subscriber=True))
-        self.drops = DropLog()
+        self.state_topics = StateTopics(node, self.on_part, lambda: not closing.is_set())
+        self.state_topics.subscribe()
         self.pending: queue.Queue[Trajectory | None] = queue.Queue(maxsize=1)
         self.thread = threading.Thread(target=self.work, name="fast_step", daemon=True)
         self.thread.start()
 
-    def on_wrench(self, msg: WrenchStamped) -> None:
-        self.on_part(msg, topics.WRENCH, fx_n=msg.wrench.force.x, fz_n=msg.wrench.force.z)
-
-    def on_twist(self, msg: TwistStamped) -> None:
-        self.on_part(msg, topics.TWIST, v_mmps=mps_to_mmps(msg.twist.linear.x))
-
-    def on_pose(self, msg: PoseStamped) -> None:
-        self.on_part(msg, topics.POSE, q_mm=m_to_mm(msg.pose.position.x))
-
-    def on_part(self, msg: Any, topic: str, **parts: float) -> None:
-        if self.closing.is_set():
-            return
-        try:
-            task = codec.task_from_frame_id(msg.header.frame_id)
-        except PeelError as exc:
-            line = self.drops.drop(topic, "header.frame_id", f"is bad: {exc}")
-            if line is not None:
-                self.node.get_logger().warn(line)
-            return
-        running = self.in_peel.add(stamp_ns(msg.header.stamp), task, **parts)
+    def on_part(self, stamp_ns: int, task: int, parts: dict[str, float]) -> None:
+        """One checked part of a state sample (:class:`StateTopics`)."""
+        running = self.in_peel.add(stamp_ns, task, **parts)
         if running is None:
             return
         with contextlib.suppress(queue.Empty):  # a copy not taken yet is out of date

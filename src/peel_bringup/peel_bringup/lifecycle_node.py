@@ -20,7 +20,7 @@ configure failed, which ``peel graph`` shuts down (a finalized node exits with i
 
 **A lost answer is asked after.** A service's response can be lost while DDS discovery of a
 fresh client is still under way (the server's response writer not yet matched to the client's
-reader: ros2/rmw_fastrtps#390, ros2/rmw_cyclonedds#187), seen here as a ``get_state`` of a
+reader: ros2/rmw_fastrtps#390), seen here as a ``get_state`` of a
 loaded CI machine that never answered. So a transition unanswered after :data:`PROBE_S` is
 followed by ``get_state`` (again every :data:`PROBE_S` while unanswered; a node's
 single-threaded executor answers it after the transition ran): the goal state counts as success,

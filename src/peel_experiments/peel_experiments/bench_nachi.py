@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from typing import Any
 from peel_msgs_py import discovery
 from peel_msgs_py.cliargs import ArgumentParser, float_arg, nonnegative_int, positive_int
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.machine import run_context
 
 #: The fields of each task of ``summary.json`` that the comparison keeps.
 FIELDS = ("outcome", "J", "t_cpl_s", "sum_fx_n", "sum_fz_n", "model_version")
@@ -93,11 +93,7 @@ def measure(tasks: int, seed: int, plant: str, speed: float, params: str | None,
         "model_versions": {"simulator_bridge": sim["model_versions"],
                            "nachi_bridge": nachi["model_versions"]},
         "wall_s": {"simulator_bridge": sim["wall_s"], "nachi_bridge": nachi["wall_s"]},
-        "load_average_1_5_15": {"before": [round(x, 2) for x in load_before],
-                                "after": [round(x, 2) for x in os.getloadavg()]},
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, "
-                   f"{platform.python_implementation()} {platform.python_version()}",
-        "at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        **run_context(load_before),
     }
 
 

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import threading
-import time
 
 import numpy as np
 
 from peel_msgs_py.cliargs import ArgumentParser, float_arg, positive_int
 from peel_msgs_py.errors import PeelError
+from peel_msgs_py.machine import run_context
 from peel_nachi_bridge import protocol as p
 from peel_nachi_bridge.bridge import NachiBridge
 from peel_nachi_bridge.config import load_config
@@ -85,11 +84,7 @@ def measure(tasks: int, speed: float) -> dict[str, object]:
         "stop_delay_ms": _summary(bridge.stats.stop_delays_s),
         "round_trip_ms": _summary([e.data["since_sample_s"] for e in stops]),
         "same_sample": f"{same}/{len(stops)}",
-        "load_average_1_5_15": {"before": [round(x, 2) for x in load_before],
-                                "after": [round(x, 2) for x in os.getloadavg()]},
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, "
-                   f"{platform.python_implementation()} {platform.python_version()}",
-        "at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        **run_context(load_before),
     }
 
 

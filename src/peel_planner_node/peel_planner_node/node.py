@@ -21,14 +21,13 @@ A state message with a non-finite value is dropped where it enters, counted and 
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
-from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
@@ -42,10 +41,10 @@ from peel_msgs_py.lifecycle import AUTOSTART, ConfigureError
 from peel_msgs_py.ros.diagnostics import publish_diagnostics
 from peel_msgs_py.ros.lifecycle import ManagedNode
 from peel_msgs_py.ros.main import run_node
-from peel_msgs_py.ros.messages import stamp, stamp_ns
+from peel_msgs_py.ros.messages import stamp
 from peel_msgs_py.ros.parameters import NamedRefusals, declare
-from peel_msgs_py.units import m_to_mm, mmps_to_mps, mps_to_mmps
-from peel_msgs_py.wire import DropLog
+from peel_msgs_py.ros.state_topics import StateTopics
+from peel_msgs_py.units import mmps_to_mps
 
 from .config import PlannerConfig
 from .control_loop import Answer, ControlLoop, StateAssembler
@@ -53,10 +52,6 @@ from .dynamics import learned_dynamics
 from .health import peak_force, plan_costs, planner_status
 from .model_check import resolve_model_path, validate_model
 from .parameters import MODEL_PATH, NODE_NAME, SPECS
-
-#: The message field each part of a state sample comes from.
-WIRE_FIELD = {"fx_n": "wrench.force.x", "fz_n": "wrench.force.z", "v_mmps": "twist.linear.x",
-              "q_mm": "pose.position.x"}
 
 
 class PlannerNode(NamedRefusals, ManagedNode):
@@ -92,7 +87,8 @@ class PlannerNode(NamedRefusals, ManagedNode):
                            self.values["node.seed"])
         warm_s = loop.warm_up(self.h)
         self.parts = StateAssembler()
-        self.drops = DropLog()
+        self.state_topics = StateTopics(self, self.on_part,
+                                        lambda: self.active and self.loop is not None)
         qos = topics.qos_profile
         self.pub_cmd = self.own(self.create_lifecycle_publisher(TwistStamped, topics.CMD_VEL,
                                                                 qos(topics.CMD_VEL)))
@@ -102,10 +98,8 @@ class PlannerNode(NamedRefusals, ManagedNode):
                                                        qos(topics.MODEL_INFO)))
         self.pub_safety = self.own(self.create_publisher(String, topics.PLANNER_SAFETY,
                                                          qos(topics.PLANNER_SAFETY)))
-        for kind, name, callback in ((WrenchStamped, topics.WRENCH, self.on_wrench),
-                                     (TwistStamped, topics.TWIST, self.on_twist),
-                                     (PoseStamped, topics.POSE, self.on_pose)):
-            self.own(self.create_subscription(kind, name, callback, qos(name, subscriber=True)))
+        for sub in self.state_topics.subscribe():
+            self.own(sub)
         self.loop = loop
         self.get_logger().info(f"planner ready: model v{self.version} ({path.name}), "
                                f"N={self.cfg.mppi.n_samples}, H={self.cfg.mppi.horizon}, "
@@ -163,38 +157,15 @@ class PlannerNode(NamedRefusals, ManagedNode):
                                plan_costs(loop.planner.last))]
 
     # -- state -------------------------------------------------------------------------------
-    def on_part(self, msg: Any, topic: str, **parts: float) -> None:
-        """One part of a state sample; a part with a non-finite value is dropped here. An
-        inactive planner plans nothing."""
-        if not self.active or self.loop is None:
-            return
-        bad = next((k for k, v in parts.items() if not math.isfinite(v)), None)
-        if bad is not None:
-            line = self.drops.drop(topic, WIRE_FIELD[bad], f"is not finite ({parts[bad]!r})")
-            if line is not None:
-                self.get_logger().warn(line)
-            return
-        try:
-            task = codec.task_from_frame_id(msg.header.frame_id)
-        except PeelError as exc:
-            line = self.drops.drop(topic, "header.frame_id", f"is bad: {exc}")
-            if line is not None:
-                self.get_logger().warn(line)
-            return
-        sample = self.parts.add(stamp_ns(msg.header.stamp), task, **parts)
+    def on_part(self, stamp_ns: int, task: int, parts: dict[str, float]) -> None:
+        """One checked part of a state sample (:class:`StateTopics`: an inactive planner gets
+        none); a whole sample is planned for."""
+        assert self.loop is not None
+        sample = self.parts.add(stamp_ns, task, **parts)
         if sample is not None:
             answer = self.loop.on_sample(sample)
             if answer is not None:
                 self.publish_cmd(answer)
-
-    def on_wrench(self, msg: WrenchStamped) -> None:
-        self.on_part(msg, topics.WRENCH, fx_n=msg.wrench.force.x, fz_n=msg.wrench.force.z)
-
-    def on_twist(self, msg: TwistStamped) -> None:
-        self.on_part(msg, topics.TWIST, v_mmps=mps_to_mmps(msg.twist.linear.x))
-
-    def on_pose(self, msg: PoseStamped) -> None:
-        self.on_part(msg, topics.POSE, q_mm=m_to_mm(msg.pose.position.x))
 
     def publish_cmd(self, a: Answer) -> None:
         report = self.loop.safety_report()

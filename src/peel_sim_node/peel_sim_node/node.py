@@ -54,6 +54,7 @@ from .config import SimConfig
 from .effects import load_effects
 from .health import sim_status
 from .lockstep import TaskSequence
+from .pacing import Pace
 from .parameters import LIBRARY_SPECS, NODE_NAME, SPECS
 
 #: Period (s, wall clock) of the timer that drives waiting, re-sending and giving up.
@@ -100,6 +101,8 @@ class SimNode(NamedRefusals, ManagedNode):
                                 task_slot_s=self.p["node.task_slot_s"], effects=effects)
         self.plant = PlantTopics(self, self.p["node.learner_node"], self.on_cmd)
         self.loop = TaskLoop(LoopParams.from_params(self.p), self.on_log)
+        self.pace = Pace(self.p["node.real_time_factor"])
+        self.ending = False  # the running task ended; its last samples may still be held
         self.clamped = self.dropped = 0  # commands of the running task
         self.sent = self.asked = time.monotonic()  # last publication; first sending of the waiting one
         self.own(self.create_timer(TICK_S, self.on_tick,
@@ -112,6 +115,7 @@ class SimNode(NamedRefusals, ManagedNode):
         """deactivate: no task starts, no command is executed; a running task ends aborted."""
         if self.loop.phase == "running":
             self.get_logger().warning("deactivated during a task: the task is aborted")
+            self.pace.clear()
             self.end_task("aborted")
 
     def release(self) -> None:
@@ -144,10 +148,23 @@ class SimNode(NamedRefusals, ManagedNode):
             self.plant.log_drop(self.plant.drops.drop(
                 topics.CMD_VEL, "twist.linear.x", f"= {u:g} mm/s is outside "
                 f"{self.limits.describe()}; executed {held:g} mm/s", action="clamped"))
-        for s in samples:
+        self.pace.hold(samples)
+        self.ending = self.seq.ended
+        self.release_due()
+
+    def release_due(self) -> None:
+        """Publish the held samples that are due (:class:`Pace`); once the last is out, the
+        lockstep waits for its answer, or the ended task is closed."""
+        if not self.pace.waiting:
+            return
+        now = time.monotonic()
+        for s in self.pace.release(now):
             self.publish(s)
-        self.asked = time.monotonic()
-        if self.seq.ended:
+        if self.pace.waiting:
+            return
+        self.asked = now
+        if self.ending:
+            self.ending = False
             self.end_task(None)
 
     def on_tick(self) -> None:
@@ -157,6 +174,8 @@ class SimNode(NamedRefusals, ManagedNode):
         index = self.loop.poll(time.monotonic(), self.plant.readiness())
         if index is not None:
             self.start_task(index)
+        elif self.loop.phase == "running" and self.pace.waiting:
+            self.release_due()
         elif self.loop.phase == "running":
             self.check_lockstep()
         self.done = self.loop.exit_now
@@ -183,8 +202,10 @@ class SimNode(NamedRefusals, ManagedNode):
     # -- tasks -------------------------------------------------------------------------------
     def start_task(self, index: int) -> None:
         self.plant.task_started(index)
-        self.publish(self.seq.start(index))
+        first = self.seq.start(index)
+        self.publish(first)
         self.asked = time.monotonic()
+        self.pace.start(first, self.asked)
 
     def check_lockstep(self) -> None:
         """No answer to the waiting sample: re-send it, or abort the task after the give-up."""

@@ -25,6 +25,9 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.seed", int, 0, "seed of the task sequence (as peel experiment's)", min=0),
     ParamSpec("node.cmd_timeout_s", float, 2.0, "wall s before the sample is re-sent", min=0.01),
     ParamSpec("node.cmd_give_up_s", float, 120.0, "wall s before the task is aborted", min=0.1),
+    ParamSpec("node.real_time_factor", float, 0.0,
+              "simulated s per wall s at most (1 = real time, as on the robot; 0 = as fast as "
+              "the planner answers)", min=0.0, max=1000.0),
     *LOOP_SPECS,
     *speed_limit_specs("node", "executed"),
     ParamSpec("node.effects", list, [""],
