@@ -214,6 +214,7 @@ class FleetWatch:
                 j = _task_cost(traj, self.run.override)
                 res.append({"task": len(res) + 1, "outcome": traj.outcome, "J": j,
                             "t_cpl_s": traj.t_cpl, "model_version": traj.meta.get("model_version"),
+                            "model_sha256": started_on(traj.meta),
                             "wall_s": round(time.monotonic() - self.t0, 2), "update": None})
                 print(f"{cell} {task_line(len(res), self.run.tasks, traj, j)}", flush=True)
             for r in res:
@@ -361,6 +362,14 @@ def run_fleet(args: Any) -> int:
         for mon in mons:
             close_monitor(mon)
     return write_summary(w)
+
+
+def started_on(meta: dict[str, Any]) -> str | None:
+    """The sha256 of the model a task started with, by the bridge's record of it in the
+    trajectory's meta (None when the bridge had no record of that version)."""
+    version = meta.get("model_version")
+    return next((m.get("sha256") for m in meta.get("models") or []
+                 if m.get("version") == version), None)
 
 
 def write_summary(w: FleetWatch) -> int:
