@@ -60,9 +60,9 @@ open(sys.argv[1], "w").write(str(len(n)))
 
 
 def test_the_launcher_sends_each_node_one_signal(tmp_path) -> None:
-    """``peel graph``'s stop (:func:`peel_bringup.graph.tear_down`): one SIGINT per process,
+    """``peel graph``'s stop (:func:`peel_bringup.children.tear_down`): one SIGINT per process,
     recorder included; no second one while the node is still shutting down."""
-    from peel_bringup.graph import RECORDER, Child, tear_down
+    from peel_bringup.children import RECORDER, Child, tear_down
 
     names = ("peel_sim_node", "peel_planner_node", "model_learner_node", RECORDER)
     children = [Child(n, [sys.executable, "-c", COUNTER, str(tmp_path / f"{n}.count")],
@@ -85,7 +85,7 @@ def test_a_signal_while_the_child_still_imports_ends_it_cleanly(module: str, tmp
                                                                 ros_domain: str) -> None:
     """The launcher's SIGINT can come while a child is still importing torch: held until the
     child's handlers are in (peel_msgs_py.held_signals), it ends the child cleanly, status 0."""
-    from peel_bringup.graph import Child
+    from peel_bringup.children import Child
 
     args = ["--out", str(tmp_path / "bag")] if "recorder" in module else ["--ros-args"]
     child = Child(module, [sys.executable, "-m", module, *args], tmp_path / "child.log")

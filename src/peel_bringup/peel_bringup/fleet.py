@@ -44,22 +44,10 @@ from peel_msgs_py.modelinfo import SWAPPED
 from peel_msgs_py.outputs import OutputDir, check_new_path
 from peel_msgs_py.task import mppi_seed
 
+from .children import Child, Interrupt, child_env, tear_down
 from .fleet_report import update_times
-from .graph import (
-    BAD_INPUT,
-    LEARNER,
-    UPDATE_FAILED,
-    Child,
-    _Interrupt,
-    _task_cost,
-    check_node_params,
-    child_env,
-    graph_params,
-    node_command,
-    node_settings,
-    task_line,
-    tear_down,
-)
+from .graph import BAD_INPUT, UPDATE_FAILED, _task_cost, task_line
+from .node_args import LEARNER, check_node_params, graph_params, node_command, node_settings
 
 LEARNER_NODE = "model_learner_node"
 #: Stream of :func:`~peel_msgs_py.task.task_seed` the cells' seeds are drawn from.
@@ -295,7 +283,7 @@ class FleetWatch:
         return UPDATE_FAILED if self.failed_updates else 0
 
 
-def watch(w: FleetWatch, stop: _Interrupt, env: dict[str, str], verbose: bool) -> None:
+def watch(w: FleetWatch, stop: Interrupt, env: dict[str, str], verbose: bool) -> None:
     """Spin the cells' monitors until every live cell is done or the user interrupts."""
     from .monitor_node import spin_once
 
@@ -346,7 +334,7 @@ def run_fleet(args: Any) -> int:
         run.out.create()
         run.run_dir.mkdir(parents=True, exist_ok=True)
         w = FleetWatch(run, learner, cells, dict(zip(run.cells, mons, strict=True)))
-        stop = _Interrupt()
+        stop = Interrupt()
         stop.install()
         try:
             learner[0].start(env, args.verbose)

@@ -52,11 +52,8 @@ update.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
-import signal
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -65,21 +62,18 @@ from pathlib import Path
 from typing import Any
 
 from peel_bag.bag import repair_hint
-from peel_msgs_py import discovery, held_signals
+from peel_msgs_py import discovery
 from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.cliargs import ArgumentParser, int_arg, nonnegative_int, positive_int, run_main
 from peel_msgs_py.errors import DomainTaken, PeelError
 from peel_msgs_py.modelinfo import SWAPPED, UpdateWait
 from peel_msgs_py.outputs import OutputDir, check_location, check_new_path
-from peel_msgs_py.params import config_dir, default_param_file, load_node_params, validate
+from peel_msgs_py.params import load_node_params
 
-from .parameters import GRAPH_SPECS
+from .children import RECORDER, Child, Interrupt, child_env, tear_down
+from .node_args import LEARNER, NACHI, check_node_params, graph_params, node_command, node_settings
 
-NODE_NAME = "peel_bringup"
 NODES = ("peel_sim_node", "peel_planner_node", "model_learner_node")
-#: The node that stands in for ``peel_sim_node`` with ``--plant nachi`` (docs/nachi.md).
-NACHI = "peel_nachi_bridge"
-RECORDER = "recorder"
 #: The live view's process (``--live``, :mod:`.live_node`), its default port (Foxglove's) and the
 #: only address it binds by default.
 LIVE = "peel_live"
@@ -100,187 +94,6 @@ EXIT_STATUS = {0: "ok", 1: "a node died", BAD_INPUT: "bad input",
                UPDATE_FAILED: "a model update failed",
                RECORDING_FAILED: "the recording failed (bag cut short)",
                DOMAIN_TAKEN: "another peel graph on the ROS domain", 130: "interrupted"}
-#: The learner whose updates the launcher (and the simulator: its ``node.learner_node``) waits
-#: for, by its identity on ``/peel/model_info`` (the learner's fully qualified node name).
-LEARNER = "/model_learner_node"
-#: The managed nodes start unconfigured; the launcher drives their transitions (:mod:`.lifecycle_node`).
-MANAGED = {"node.autostart": False}
-
-
-def graph_params(override: str | None) -> dict[str, Any]:
-    """The validated ``graph.*`` parameters: shipped config/peel_bringup.yaml + override file."""
-    flat = load_node_params(NODE_NAME, override)
-    return validate(GRAPH_SPECS, {k: v for k, v in flat.items() if k.startswith("graph.")})
-
-
-def node_specs(name: str) -> tuple[Any, ...]:
-    """Every parameter node ``name`` declares (its package's ``parameters.SPECS``)."""
-    import importlib
-
-    return tuple(importlib.import_module(f"{name}.parameters").SPECS)
-
-
-def check_node_params(override: str | None, sets: dict[str, dict[str, Any]]) -> None:
-    """Refuse, before any process starts, what a node would refuse at its start: unknown names
-    (sections of the files included), wrong types (an integer for a DOUBLE too), values out of
-    range, with the parameter named (:class:`~peel_msgs_py.errors.ParameterError`). ``sets``
-    names the nodes to start and their ``-p`` settings."""
-    for name, settings in sets.items():
-        specs = node_specs(name)
-        known = {s.name for s in specs}
-        # /** names this node does not declare are for other nodes (checked by the loader)
-        flat = {k: v for k, v in load_node_params(name, override).items() if k in known}
-        values = validate(specs, {**flat, **settings})
-        if name == NACHI:  # what the bridge checks across its parameters (host, backoff)
-            from peel_nachi_bridge.config import BridgeConfig
-
-            BridgeConfig.from_params(values)
-
-
-def _p(name: str, value: Any) -> list[str]:
-    """``-p name:=value`` with a YAML-safe value."""
-    if isinstance(value, bool):
-        text = "true" if value else "false"
-    elif isinstance(value, (str, list)):
-        text = json.dumps(value)  # a quoted YAML string, or a flow sequence of them
-    else:
-        text = repr(value)
-    return ["-p", f"{name}:={text}"]
-
-
-def node_command(name: str, override: str | None, sets: dict[str, Any]) -> list[str]:
-    """``python -m <pkg>.node --ros-args --params-file ... -p ...`` for one node."""
-    cmd = [sys.executable, "-m", f"{name}.node", "--ros-args"]
-    shipped = default_param_file(name)
-    if shipped.is_file():
-        cmd += ["--params-file", str(shipped)]
-    if override:
-        cmd += ["--params-file", str(Path(override).resolve())]
-    for key, value in sets.items():
-        cmd += _p(key, value)
-    return cmd
-
-
-def node_settings(plant: str, tasks: int, seed: int, run_dir: Path, recording: bool,
-                  link: dict[str, Any] | None = None, effects: Sequence[str] = (),
-                  live: bool = False) -> dict[str, dict[str, Any]]:
-    """The nodes to start and the ``-p`` settings the launcher gives each: the simulator bridge
-    (``plant`` sim or plant; ``effects``: its ``node.effects``) or the Nachi bridge (``plant``
-    nachi; ``link``: its ``link.host``, ``link.port``), the planner and the learner. The
-    recorder and the live view (``live``) are readers the bridge and the planner wait for."""
-    tools = int(recording) + int(live)
-    readers = {"node.min_subscribers": 1 + tools,  # planner (+ recorder, live view)
-               "node.min_traj_subscribers": 2 + tools}  # learner, launcher (+ ...)
-    if plant == "nachi":  # the substrates and the plant are the controller's
-        bridge = {NACHI: {"use_sim_time": True, "node.tasks": tasks, **readers,
-                          "node.learner_node": LEARNER, **MANAGED, **(link or {})}}
-    else:
-        bridge = {"peel_sim_node": {"use_sim_time": True, "node.source": plant,
-                                    "node.tasks": tasks, "node.seed": seed, **readers,
-                                    "node.learner_node": LEARNER, **MANAGED}}
-        if effects:
-            bridge["peel_sim_node"]["node.effects"] = list(effects)
-    return {
-        **bridge,
-        "peel_planner_node": {"use_sim_time": True, "node.seed": seed, **MANAGED,
-                              "node.min_cmd_subscribers": 1 + tools},  # bridge (+ rec., live)
-        "model_learner_node": {
-            "use_sim_time": True, "node.out_dir": str((run_dir / "models").resolve()),
-        },
-    }
-
-
-def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
-    """Own process group (one Ctrl-C is handled in order by the launcher); SIGTERM to the child
-    when the launcher dies (Linux PR_SET_PDEATHSIG); SIGINT/SIGTERM held until the child's own
-    handlers are installed (:mod:`peel_msgs_py.held_signals`)."""
-    os.setpgrp()
-    held_signals.hold()
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
-    except (OSError, AttributeError):  # not Linux: children then rely on the launcher's stop
-        pass
-
-
-@dataclass
-class Child:
-    """One started process."""
-
-    name: str
-    cmd: list[str]
-    log: Path
-    proc: subprocess.Popen[bytes] | None = None
-    stopping: bool = False
-    reported: bool = False
-
-    def start(self, env: dict[str, str], verbose: bool) -> None:
-        self.log.parent.mkdir(parents=True, exist_ok=True)
-        out = None if verbose else self.log.open("wb")
-        try:
-            self.proc = subprocess.Popen(self.cmd, stdout=out, stderr=subprocess.STDOUT
-                                         if out is not None else None, env=env,
-                                         preexec_fn=_child_setup)
-        finally:
-            if out is not None:
-                out.close()
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid if self.proc is not None else -1
-
-    def poll(self) -> int | None:
-        return None if self.proc is None else self.proc.poll()
-
-    def signal(self, sig: int) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(self.proc.pid, sig)
-
-    def stop(self, timeout_s: float, *, signalled: bool = False) -> int | None:
-        """SIGINT (unless ``signalled`` already), then SIGTERM, then SIGKILL, each only after
-        the previous one went unanswered; returns the exit status."""
-        if self.proc is None:
-            return None
-        self.stopping = True
-        for sig, wait in ((signal.SIGINT, timeout_s), (signal.SIGTERM, 5.0),
-                          (signal.SIGKILL, 5.0)):
-            if self.proc.poll() is not None:
-                break
-            if not (signalled and sig == signal.SIGINT):
-                self.signal(sig)
-            try:
-                self.proc.wait(timeout=wait)
-            except subprocess.TimeoutExpired:
-                continue
-        return self.proc.poll()
-
-    def tail(self, n: int = 8) -> str:
-        try:
-            lines = self.log.read_text(errors="replace").splitlines()
-        except OSError:
-            return ""
-        return "\n".join("    " + line for line in lines[-n:])
-
-
-class _Interrupt:
-    """SIGINT / SIGTERM set a flag; the launcher then stops the graph in order."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self._old: dict[int, Any] = {}
-
-    def install(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._old[sig] = signal.signal(sig, self._handle)
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.signum = signum
-
-    def restore(self) -> None:
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
 
 
 def _parser() -> ArgumentParser:
@@ -467,16 +280,6 @@ def managed_nodes(run: Run) -> list[str]:
     return ["peel_planner_node", NACHI if run.plant == "nachi" else "peel_sim_node"]
 
 
-def child_env() -> dict[str, str]:
-    """The nodes' environment: this one, confined to the machine unless the user opened it."""
-    env = dict(os.environ)
-    discovery.confine(env)
-    env["PYTHONUNBUFFERED"] = "1"
-    env.setdefault("PEEL_CONFIG_DIR", str(config_dir()))
-    env.setdefault("OMP_NUM_THREADS", "1")
-    return env
-
-
 @dataclass
 class Watch:
     """The launcher's view of a running graph."""
@@ -597,7 +400,7 @@ def last_update_in(updates: UpdateWait, task: int) -> bool:
     return rep.status != SWAPPED or (outcome is not None and outcome.version is not None)
 
 
-def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool, up: Any) -> None:
+def watch(w: Watch, mon: Any, stop: Interrupt, keep_going: bool, up: Any) -> None:
     """Spin the monitor until the tasks are done, a node dies or the user interrupts; ``up``
     (:class:`~peel_bringup.lifecycle_node.GraphBringUp`) configures and activates the managed nodes
     meanwhile."""
@@ -615,24 +418,6 @@ def watch(w: Watch, mon: Any, stop: _Interrupt, keep_going: bool, up: Any) -> No
             return
         if w.check_children(keep_going) or w.finished(mon):
             return
-
-
-def tear_down(children: list[Child], timeout_s: float) -> int | None:
-    """One SIGINT per node (simulator or Nachi bridge, planner, learner), each waited for (then
-    SIGTERM, SIGKILL after the grace period); the recorder last, so the bag holds everything.
-    Returns the recorder's exit status (None without one)."""
-    nodes = [c for c in children if c.name != RECORDER]
-    for child in nodes:
-        child.signal(signal.SIGINT)
-        child.stopping = True
-    for child in nodes:
-        child.stop(timeout_s, signalled=True)
-    code = None
-    for child in children:
-        if child.name == RECORDER:
-            time.sleep(0.5)  # let the last messages reach the recorder
-            code = child.stop(timeout_s)
-    return code
 
 
 def check_alone(mon: Any, wait_s: float) -> None:
@@ -670,7 +455,7 @@ def run_graph(args: argparse.Namespace) -> int:
     assert run.out is not None
     run.out.create()  # every check passed: nothing is written before this
     run.run_dir.mkdir(parents=True, exist_ok=True)
-    stop = _Interrupt()
+    stop = Interrupt()
     stop.install()
     w = Watch(run, children)
     try:
