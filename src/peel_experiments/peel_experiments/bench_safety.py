@@ -43,7 +43,9 @@ from peel_planner_node.cost import Cost, episode_cost_terms
 from peel_planner_node.dynamics import learned_dynamics
 from peel_planner_node.mppi import Planner
 
-from .bench_planner import TorchMppiPolicy, load_model, parse_sets, peak_force, timing
+from .bench_common import load_model, parse_sets, timing
+from .planner_studies import peak_force
+from .torch_mppi import TorchMppiPolicy
 
 ARMS: tuple[str, ...] = ("peel", "peel_unguarded", "pytorch_mppi")
 
