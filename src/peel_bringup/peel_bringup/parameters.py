@@ -32,7 +32,7 @@ GRAPH_SPECS: tuple[ParamSpec, ...] = (
 
 
 def _specs() -> tuple[ParamSpec, ...]:
-    from peel_experiments.experiment import EXPERIMENT_SPECS
+    from peel_experiments.experiment_config import EXPERIMENT_SPECS
 
     return (*GRAPH_SPECS, *EXPERIMENT_SPECS)
 

@@ -27,7 +27,7 @@ from peel_msgs_py.cliargs import (
 from peel_msgs_py.errors import PeelError
 from peel_msgs_py.outputs import OutputDir, read_marker
 
-from .experiment import ExperimentConfig, check_methods, load_experiment_config
+from .experiment_config import ExperimentConfig, check_methods, load_experiment_config
 
 _ints = int_list(0)  # comma-separated seeds / N / H
 _floats = float_list(0.0, min_open=True)  # comma-separated lambdas: finite and > 0

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from .experiment import ORACLE, ExperimentConfig, run_experiment
+from .experiment import run_experiment
+from .experiment_config import ORACLE, ExperimentConfig
 
 #: tasks at which the fraction of headroom closed is reported (5, 10, 20: docs/experiments.md)
 CHECK_TASKS: tuple[int, ...] = (5, 10, 20)
