@@ -104,15 +104,18 @@ class Step:
 
     target: str
     transition: str
-    future: Future | None = None  # the latest change_state sent
     success: bool | None = None
-    sent: list[Future] = field(default_factory=list)  # every change_state sent
+    sent: list[Future] = field(default_factory=list)  # every change_state sent, in order
     asked_s: float = 0.0  # when the latest request (change_state or get_state) went out
     probe: Future | None = None
 
+    @property
+    def future(self) -> Future | None:
+        """The latest change_state sent (None before the first)."""
+        return self.sent[-1] if self.sent else None
+
     def send(self, lc: Lifecycle, now: float) -> None:
-        self.future = lc.change(self.target, self.transition)
-        self.sent.append(self.future)
+        self.sent.append(lc.change(self.target, self.transition))
         self.asked_s = now
 
     def advance(self, lc: Lifecycle, now: float) -> None:

@@ -102,7 +102,6 @@ class SimNode(NamedRefusals, ManagedNode):
         self.plant = PlantTopics(self, self.p["node.learner_node"], self.on_cmd)
         self.loop = TaskLoop(LoopParams.from_params(self.p), self.on_log)
         self.pace = Pace(self.p["node.real_time_factor"])
-        self.ending = False  # the running task ended; its last samples may still be held
         self.clamped = self.dropped = 0  # commands of the running task
         self.sent = self.asked = time.monotonic()  # last publication; first sending of the waiting one
         self.own(self.create_timer(TICK_S, self.on_tick,
@@ -149,7 +148,6 @@ class SimNode(NamedRefusals, ManagedNode):
                 topics.CMD_VEL, "twist.linear.x", f"= {u:g} mm/s is outside "
                 f"{self.limits.describe()}; executed {held:g} mm/s", action="clamped"))
         self.pace.hold(samples)
-        self.ending = self.seq.ended
         self.release_due()
 
     def release_due(self) -> None:
@@ -163,8 +161,7 @@ class SimNode(NamedRefusals, ManagedNode):
         if self.pace.waiting:
             return
         self.asked = now
-        if self.ending:
-            self.ending = False
+        if self.seq.ended:
             self.end_task(None)
 
     def on_tick(self) -> None:
