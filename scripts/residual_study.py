@@ -3,7 +3,8 @@
 
     .venv/bin/python scripts/residual_study.py --out DIR [--families F,...]
         [--amplitudes 0.5,1,2] [--tasks 10,30] [--draws 20] [--clean 20] [--seed 1]
-        [--source plant|sim] [--level L] [--fresh 5] [--workers 1] [--no-progress]
+        [--source plant|sim] [--level L] [--fresh 5] [--adapt K] [--workers 1]
+        [--no-progress]
 
 Clean tasks are recorded once per data seed with the plant's episode generator under
 exploratory command profiles (``peel_sim_node.episode.exploratory_tasks``, as
@@ -14,20 +15,31 @@ fresh tasks (``--fresh`` per task count, their own data seed) are never analysed
 model is scored on them with the same effect. Writes ``DIR/runs.jsonl`` (each run as it ends),
 then ``DIR/study.json`` (every run and the summary) and ``DIR/study.md`` (the tables). Seeded:
 the same arguments give the same results with any ``--workers``. Tune on dev seeds (``--seed 0``), report on others.
+
+``--adapt K`` (K >= 8) analyses with *a model adapted to the plant* instead of the shipped one:
+the shipped model fine-tuned on K clean tasks of their own data seed (:data:`ADAPT_SEED` + seed,
+never analysed) as ``peel train --init`` fine-tunes (``train_and_save``, the ``train:`` group
+with the Adam rate ``--adapt-lr``; 4 tasks validate, 2 test), written to
+``DIR/adapted.safetensors`` with its metrics and named in ``study.json`` (``model``). It stands
+for the cell's model after online learning on the plant: the plant's own difference is then in
+the model, not in the residual.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shlex
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 from peel_msgs_py.cliargs import (
     ArgumentParser,
+    float_arg,
     float_list,
     int_arg,
     int_list,
@@ -37,6 +49,11 @@ from peel_msgs_py.cliargs import (
 )
 
 FRESH_SEED = 999_999
+#: Data seed offset of ``--adapt``'s clean tasks (none of them is analysed or fresh).
+ADAPT_SEED = 777_000
+#: ``--adapt``'s Adam rate, chosen on dev seed 0 (docs/residual.md): 10x the ``train:`` group's
+#: 1e-4, which early-stops after a few epochs with most of the plant's open-loop gap left.
+ADAPT_LR = 1e-3
 
 
 @lru_cache(maxsize=8)
@@ -49,21 +66,48 @@ def _tasks(source: str, n: int, seed: int, level: int | None) -> tuple[Any, ...]
 
 
 @lru_cache(maxsize=1)
-def _model_and_config() -> tuple[Any, Any]:
+def _model_and_config(path: str | None) -> tuple[Any, Any]:
     import torch
 
     from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
     from peel_residual.config import load_residual_config
 
     torch.set_num_threads(1)
-    return load_checkpoint(shipped_checkpoint()), load_residual_config()
+    return load_checkpoint(path or shipped_checkpoint()), load_residual_config()
 
 
-def _run(args: tuple[Any, str, int | None, int]) -> dict[str, Any]:
+def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | None
+           ) -> dict[str, Any]:
+    """The shipped model fine-tuned on ``k`` clean tasks (module docstring, ``--adapt``)."""
+    import torch
+
+    from model_learner_node.config import load_train_config
+    from model_learner_node.train import train_and_save
+    from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+
+    torch.set_num_threads(1)
+    tasks = list(_tasks(source, k, ADAPT_SEED + seed, level))
+    init = load_checkpoint(shipped_checkpoint())
+    cfg = replace(load_train_config(), lr=lr)
+    result, metrics = train_and_save(out / "adapted", tasks[:-6], tasks[-6:-2], tasks[-2:],
+                                     model_cfg=init.cfg, train_cfg=cfg,
+                                     init=init, progress=False,
+                                     extra_meta={"adapted_on": {"tasks": k, "source": source,
+                                                                "data_seed": ADAPT_SEED + seed,
+                                                                "level": level}})
+    path = out / "adapted.safetensors"
+    return {"adapted_on_tasks": k, "data_seed": ADAPT_SEED + seed, "lr": lr,
+            "checkpoint": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "val_rmse_before": result.history[0]["val_rmse"],
+            "val_rmse_after": result.best_val_rmse, "test_rmse": metrics["test_rmse"],
+            "epochs_run": metrics["epochs_run"]}
+
+
+def _run(args: tuple[Any, str, int | None, int, str | None]) -> dict[str, Any]:
     from peel_residual.study import run_job
 
-    job, source, level, fresh = args
-    model, cfg = _model_and_config()
+    job, source, level, fresh, model_path = args
+    model, cfg = _model_and_config(model_path)
     return run_job(job, _tasks(source, job.n_tasks, job.data_seed, level),
                    _tasks(source, fresh, FRESH_SEED + job.seed, level), model, cfg)
 
@@ -82,6 +126,11 @@ def main(argv: list[str]) -> int:
     p.add_argument("--source", choices=("plant", "sim"), default="plant")
     p.add_argument("--level", type=int_arg(0, 3), default=None)
     p.add_argument("--fresh", type=int_arg(2), default=5)
+    p.add_argument("--adapt", type=nonnegative_int, default=0,
+                   help="analyse with the shipped model fine-tuned on this many clean tasks "
+                        "(0: the shipped model; else at least 8)")
+    p.add_argument("--adapt-lr", type=float_arg(1e-6, 1.0), default=ADAPT_LR,
+                   help=f"Adam rate of --adapt's fine-tuning (default {ADAPT_LR:g})")
     p.add_argument("--workers", type=positive_int, default=1)
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -89,6 +138,8 @@ def main(argv: list[str]) -> int:
     unknown = sorted(set(families) - set(STUDY_FAMILIES))
     if unknown:
         p.error(f"unknown families {unknown}; known: {', '.join(STUDY_FAMILIES)}")
+    if 0 < args.adapt < 8:
+        p.error(f"--adapt needs at least 8 tasks (train, 4 validate, 2 test), got {args.adapt}")
     return _study(args, families, argv)
 
 
@@ -98,8 +149,13 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     from peel_residual.study import markdown, plan_jobs, summarise
 
     jobs = plan_jobs(families, args.amplitudes, args.tasks, args.draws, args.clean, args.seed)
-    work = [(j, args.source, args.level, args.fresh) for j in jobs]
     args.out.mkdir(parents=True, exist_ok=True)
+    model: dict[str, Any] = {"checkpoint": "shipped"}
+    path = None
+    if args.adapt:
+        model = _adapt(args.out, args.adapt, args.adapt_lr, args.source, args.seed, args.level)
+        path = str(args.out / "adapted.safetensors")
+    work = [(j, args.source, args.level, args.fresh, path) for j in jobs]
     records: list[dict[str, Any]] = []
     with tqdm(total=len(jobs), desc="residual study", unit="run",
               disable=args.no_progress) as bar, open(args.out / "runs.jsonl", "w") as log:
@@ -121,7 +177,7 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     command = "scripts/residual_study.py " + " ".join(shlex.quote(a) for a in argv)
     (args.out / "study.json").write_text(json.dumps(
         {"command": command, "source": args.source, "level": args.level, "seed": args.seed,
-         "summary": summary, "runs": records}, indent=1) + "\n")
+         "model": model, "summary": summary, "runs": records}, indent=1) + "\n")
     (args.out / "study.md").write_text(markdown(summary, command))
     print(json.dumps(summary, indent=1))
     return 0

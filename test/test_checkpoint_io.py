@@ -6,6 +6,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from safetensors import safe_open
 from safetensors.numpy import load_file as np_load_file
 
 from peel_model.checkpoint import (
@@ -51,6 +52,23 @@ def test_round_trip_bit_exact(tmp_path, arch):
     for k, a in arrays.items():
         assert list(a.shape) == cfg["tensors"][k]["shape"]
         np.testing.assert_array_equal(a, sd_p[k].numpy())
+
+
+def test_the_same_model_saved_twice_is_the_same_file(tmp_path):
+    """The file's SHA-256 is the model's identity: every save of the same model and meta gives
+    the same bytes (safetensors itself writes its metadata in hash-map order)."""
+    p = make("ours")
+    blobs = {(save_checkpoint(tmp_path / f"m{i}", p, {"x": 1}).read_bytes()) for i in range(8)}
+    assert len(blobs) == 1
+    with safe_open(str(tmp_path / "m0.safetensors"), framework="np") as f:  # still a valid file
+        assert f.metadata() == {"format": "peel-forward-model", "format_version": "1"}
+        for k, v in p.state_dict().items():
+            np.testing.assert_array_equal(f.get_tensor(k), v.numpy())
+    cfg = json.loads((tmp_path / "m0.json").read_text())
+    assert cfg["safetensors_bytes"] == len(next(iter(blobs)))
+    q = load_checkpoint(tmp_path / "m3")
+    assert all(torch.equal(a, b) for a, b in zip(q.state_dict().values(),
+                                                  p.state_dict().values(), strict=True))
 
 
 def test_any_suffix_names_the_same_checkpoint(tmp_path):

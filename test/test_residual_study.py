@@ -8,6 +8,7 @@ run as a real process with 1 and 2 workers. Seeds here (3, 31, 41) are not the r
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 from residual_helpers import generate_tasks
+from safetensors import safe_open
 
 from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
 from peel_model.effect_terms import Candidate, Term
@@ -133,22 +135,45 @@ def test_a_term_that_worsens_the_held_out_open_loop_is_never_kept(plant10, model
     assert after["fz"] < base["fz"]
 
 
-def test_the_study_script_is_independent_of_the_worker_count(tmp_path: Path) -> None:
-    def study(workers: int) -> dict:
-        out = tmp_path / f"w{workers}"
-        proc = subprocess.run(
-            [sys.executable, str(ROOT / "scripts" / "residual_study.py"), "--out", str(out),
-             "--families", "sensor_offset," + TASK_OFFSET, "--amplitudes", "1", "--tasks", "5",
-             "--draws", "1", "--clean", "1", "--source", "sim", "--fresh", "2", "--seed", "3",
-             "--workers", str(workers), "--no-progress"],
-            capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        assert "| clean data, tasks |" in (out / "study.md").read_text()
-        assert len((out / "runs.jsonl").read_text().splitlines()) == 3
-        return json.loads((out / "study.json").read_text())
+def _study_script(out: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "residual_study.py"), "--out", str(out),
+         "--families", "sensor_offset," + TASK_OFFSET, "--amplitudes", "1", "--tasks", "5", "--draws", "1",
+         "--clean", "1", "--source", "sim", "--fresh", "2", "--seed", "3", "--no-progress",
+         *extra], capture_output=True, text=True, timeout=600)
 
-    one, two = study(1), study(2)
-    strip = [{k: v for k, v in r.items() if k != "wall_s"} for r in one["runs"]]
-    assert strip == [{k: v for k, v in r.items() if k != "wall_s"} for r in two["runs"]]
-    assert [r["family"] for r in one["runs"]] == ["sensor_offset", TASK_OFFSET, CLEAN]
-    assert len(one["summary"]["power"]) == 2 and one["summary"]["clean"][0]["runs"] == 1
+
+def test_the_study_script_is_independent_of_the_worker_count(tmp_path: Path) -> None:
+    """With the shipped model, and with ``--adapt`` (the shipped model fine-tuned on clean tasks
+    of their own seed, saved beside the study, loaded by every worker): 1 and 2 workers give the
+    same runs, and the adapted model's differ from the shipped model's."""
+    bad = _study_script(tmp_path / "bad", "--adapt", "4")
+    assert bad.returncode == 2 and "--adapt needs at least 8 tasks" in bad.stderr
+    assert not (tmp_path / "bad").exists()
+    runs = {}
+    for name, extra in (("shipped", ()), ("w1", ("--adapt", "8")),
+                        ("w2", ("--adapt", "8", "--workers", "2"))):
+        proc = _study_script(tmp_path / name, *extra)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        runs[name] = json.loads((tmp_path / name / "study.json").read_text())
+    model = runs["w1"]["model"]
+    path = tmp_path / "w1" / "adapted.safetensors"
+    assert model["checkpoint"] == "adapted.safetensors" and model["adapted_on_tasks"] == 8
+    assert model["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert model["sha256"] == runs["w2"]["model"]["sha256"]  # the same fine-tuning, seeded
+    with safe_open(str(path), framework="pt") as f:  # an independent reader
+        assert f.keys()
+    assert model["val_rmse_after"] < model["val_rmse_before"]
+
+    def strip(study: dict) -> list[dict]:
+        return [{k: v for k, v in r.items() if k != "wall_s"} for r in study["runs"]]
+
+    assert strip(runs["w1"]) == strip(runs["w2"])
+    assert [r["heldout_open_loop_rmse_before"] for r in runs["w1"]["runs"]] != [
+        r["heldout_open_loop_rmse_before"] for r in runs["shipped"]["runs"]]
+    shipped = runs["shipped"]
+    assert shipped["model"] == {"checkpoint": "shipped"}
+    assert [r["family"] for r in shipped["runs"]] == ["sensor_offset", TASK_OFFSET, CLEAN]
+    assert "| clean data, tasks |" in (tmp_path / "shipped" / "study.md").read_text()
+    assert len((tmp_path / "shipped" / "runs.jsonl").read_text().splitlines()) == 3
+    assert len(shipped["summary"]["power"]) == 2 and shipped["summary"]["clean"][0]["runs"] == 1

@@ -111,7 +111,7 @@ def save_checkpoint(
     if compensation is not None:
         compensation = jsonable(compensation)
         header["compensation"] = _canonical(compensation)
-    blob = st_save(tensors, metadata=header)
+    blob = _sorted_header(st_save(tensors, metadata=header))
     config = {
         "format": FORMAT,
         "format_version": version,
@@ -263,6 +263,18 @@ def load_checkpoint(
 def _canonical(obj: Any) -> str:
     """One text per JSON value (sorted keys, no spaces): what the weights file seals."""
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _sorted_header(blob: bytes) -> bytes:
+    """``blob`` with its JSON header written with sorted keys, so that the same tensors and
+    metadata always give the same bytes and so the same SHA-256 (the model's identity):
+    ``safetensors`` writes ``__metadata__`` in hash-map order, which changes from one save to
+    the next. The header is padded with spaces to a multiple of 8 bytes as ``safetensors``
+    pads it; tensor offsets count from the end of the header, so the data is unchanged."""
+    n = int.from_bytes(blob[:8], "little")
+    text = json.dumps(json.loads(blob[8:8 + n]), sort_keys=True, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    return len(text).to_bytes(8, "little") + text + blob[8 + n:]
 
 
 def _header_metadata(blob: bytes) -> dict[str, str]:

@@ -10,7 +10,7 @@ depend on how many workers run them or in which order):
 
 Each job runs :func:`~.analysis.analyse` (held-out tasks inside it, as ``peel residual`` does)
 and records (:func:`run_job`): what was named, the per-channel verdicts, the held-out open-loop
-RMSE after / before on the affected channel, and the same ratio on *fresh* tasks that the
+RMSE of the model as given and after / before on the affected channel, and the same ratio on *fresh* tasks that the
 analysis never saw (the held-out tasks take part in the held-out decision, :mod:`.decide`).
 
 Detection (:func:`detected`): the injected family named on the injected channel; a between-task
@@ -98,6 +98,8 @@ def run_job(job: Job, tasks: Sequence[Trajectory], fresh: Sequence[Trajectory], 
         "heldout_open_loop_ratio": {ch: _ratio(r.rmse_after[ch]["open_loop"],
                                                 r.rmse_before[ch]["open_loop"])
                                     for ch in (*FORCE_CHANNELS, "v")},
+        "heldout_open_loop_rmse_before": {ch: r.rmse_before[ch]["open_loop"]
+                                          for ch in (*FORCE_CHANNELS, "v")},
         "wall_s": round(wall, 2)}
     hz = horizons(inj.apply(fresh) if inj else list(fresh), int(model.h), cfg.horizon_steps,
                   cfg.stride)
