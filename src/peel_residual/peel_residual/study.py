@@ -10,8 +10,9 @@ depend on how many workers run them or in which order):
 
 Each job runs :func:`~.analysis.analyse` (held-out tasks inside it, as ``peel residual`` does)
 and records (:func:`run_job`): what was named, the per-channel verdicts, the held-out open-loop
-RMSE of the model as given and after / before on the affected channel, and the same ratio on *fresh* tasks that the
-analysis never saw (the held-out tasks take part in the held-out decision, :mod:`.decide`).
+RMSE of the model as given, its after / before on the affected channel, and the same ratio on
+*fresh* tasks that the analysis never saw (the held-out tasks take part in the held-out
+decision, :mod:`.decide`).
 
 Detection (:func:`detected`): the injected family named on the injected channel; a between-task
 offset counts when a drift across tasks is flagged on its channel. A false alarm on clean data:
