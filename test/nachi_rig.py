@@ -102,10 +102,12 @@ class Rig:
         self.pub_info.publish(String(data=rec.to_json()))
 
     def wait_matched(self, name: str, publishers: int, timeout_s: float = 120.0) -> None:
-        """Wait until the recorder's reader of ``name`` has matched ``publishers`` writers (a
-        node's publisher matched late loses its first messages to this bag)."""
+        """Wait until the recorder's reader of ``name`` has matched ``publishers`` writers of
+        other nodes (a node's publisher matched late loses its first messages to this bag). The
+        reader matches the rig's own writer of ``name`` too, so that one is not counted."""
+        own = sum(1 for p in self.node.publishers if p.topic_name == name)
         deadline = time.monotonic() + timeout_s
-        while self.subs[name].get_publisher_count() < publishers:
+        while self.subs[name].get_publisher_count() < own + publishers:
             assert time.monotonic() < deadline, f"{publishers} publishers of {name} not matched"
             time.sleep(0.05)
 

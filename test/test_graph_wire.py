@@ -79,11 +79,12 @@ class Stranger:
         self.planner = planner_pid
 
     def matched(self) -> bool:
-        """The simulator and recorder read its commands, the planner and recorder its wrenches,
-        the learner, launcher and recorder its trajectories."""
+        """The simulator and recorder read its commands, the planner and recorder its wrenches
+        (and its own reader of the samples, which DDS matches too), the learner, launcher and
+        recorder its trajectories."""
         return (self.traj is not None and self.traj.get_subscription_count() >= 3
                 and self.cmd.get_subscription_count() >= 2
-                and self.wrench.get_subscription_count() >= 2)
+                and self.wrench.get_subscription_count() >= 3)
 
     def _run(self) -> None:
         import rclpy
@@ -143,6 +144,15 @@ class Stranger:
                           outcome="done", meta={"task_index": 0})
         self.traj.publish(trajectory_msg(traj))
 
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until every reader matched to its publishers has acknowledged what they sent
+        (a writer destroyed earlier takes its unacknowledged samples with it); True if all
+        did within ``timeout_s``."""
+        from rclpy.duration import Duration
+
+        pubs = [p for p in (self.cmd, self.wrench, self.traj) if p is not None]
+        return all(p.wait_for_all_acked(Duration(seconds=timeout_s)) for p in pubs)
+
     def resume_planner(self) -> None:
         self.armed = False
         if self.stopped and self.planner is not None:
@@ -198,7 +208,8 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         # only for a command it executed
         _wait(lambda: "clamped a /peel/cmd_vel" in sim_log.read_text(), 300,
               "the simulator to execute the stranger's command")
-        stranger.resume_planner()
+        stranger.resume_planner()  # before the flush: a stopped planner acknowledges nothing
+        assert stranger.flush(300), "the stranger's messages were not acknowledged"
         stranger.close()  # done: it leaves the graph before the recorder is stopped
         rc = proc.wait(timeout=400)
     finally:

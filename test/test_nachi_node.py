@@ -118,6 +118,30 @@ def _node(name: str, *args: str) -> list[str]:
             str(ROOT / "config" / f"{name}.yaml"), *args]
 
 
+def test_the_rig_waits_for_writers_of_other_nodes_not_its_own(tmp_path: Path,
+                                                             ros_domain: str) -> None:
+    """The rig's recorder also matches the rig's own /peel/cmd_vel writer; a wait for the
+    planner's writer must not be satisfied by it (the bag would miss the planner's first
+    commands)."""
+    import rclpy
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.node import Node
+
+    rig = Rig(ros_domain, tmp_path / "bag", model_version=None)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_domain))
+    try:
+        with pytest.raises(AssertionError, match="1 publishers of /peel/cmd_vel not matched"):
+            rig.wait_matched(topics.CMD_VEL, 1, timeout_s=2.0)  # only its own writer exists
+        other = Node("peel_test_planner", context=ctx)
+        other.create_publisher(TwistStamped, topics.CMD_VEL, topics.qos_profile(topics.CMD_VEL))
+        rig.wait_matched(topics.CMD_VEL, 1)  # another participant's writer: matched
+        other.destroy_node()
+    finally:
+        ctx.try_shutdown()
+        rig.close()
+
+
 @pytest.mark.slow
 def test_full_tasks_with_the_planner_and_the_learner(tmp_path: Path, ros_domain: str) -> None:
     """The graph with the bridge in the simulator bridge's place: the real planner and learner
