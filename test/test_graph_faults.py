@@ -90,7 +90,7 @@ def test_failed_update_is_reported_and_the_tasks_go_on(tmp_path: Path, ros_domai
     # the planner kept its model; no model with non-finite outputs was offered or written
     assert summary["model_versions"] == [0]
     assert [r["model_version"] for r in summary["results"]] == [0, 0]
-    assert not list((run / "models").glob("*.safetensors"))
+    assert not list((run / "models").glob("model_v*.safetensors"))
     learner = (run / "logs" / "model_learner_node.log").read_text()
     assert "update after task 1 failed" in learner and "non-finite" in learner
     sim = (run / "logs" / "peel_sim_node.log").read_text()

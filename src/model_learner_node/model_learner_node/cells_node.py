@@ -139,7 +139,10 @@ class Cells:
     # -- subscriptions ----------------------------------------------------------------------
     def on_trajectory(self, cell: str, msg: Float64MultiArray) -> None:
         traj = self.decode(msg)
-        if traj is not None:
+        if traj is not None and self.learner.has_learned(traj):
+            self.node.get_logger().info(f"{cell}: task {task_number(traj, 0)}: learned before "
+                                        f"the restart; dropped")  # the bridge's history
+        elif traj is not None:
             state = self.cells[cell]
             state.tasks_seen += 1
             self.order.add(cell, task_number(traj, state.tasks_seen), traj)

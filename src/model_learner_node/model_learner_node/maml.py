@@ -330,9 +330,7 @@ class MetaLearner:
         with torch.no_grad():
             if self.cfg.optimizer == "adam":
                 if self._opt is None:
-                    self._opt = torch.optim.Adam(
-                        [named[k] for k in g], lr=self.cfg.beta
-                    )
+                    self._opt = self._adam()
                 for k, v in g.items():
                     named[k].grad = (v * scale).to(named[k].dtype)
                 self._opt.step()
@@ -343,9 +341,15 @@ class MetaLearner:
                     named[k].sub_(self.cfg.beta * scale * v)
         return norm
 
+    def _adam(self) -> torch.optim.Optimizer:
+        """The meta-optimiser of Eq. 27 (learning rate beta) over theta, in :meth:`params` order."""
+        named = dict(self.model.named_parameters())
+        return torch.optim.Adam([named[k] for k in self.params()], lr=self.cfg.beta)
+
     def state(self) -> dict[str, Any]:
         """A copy of theta and of the meta-optimiser's state; :meth:`restore` brings them back
-        (the learner node undoes an update whose model predicts non-finite forces)."""
+        (the learner node undoes an update whose model predicts non-finite forces; a restarted
+        learner goes on from its saved state, :mod:`~model_learner_node.resume`)."""
         return {"model": copy.deepcopy(self.model.state_dict()),
                 "opt": copy.deepcopy(self._opt.state_dict()) if self._opt is not None else None,
                 "n_updates": self.n_updates, "version": self.version}
@@ -355,7 +359,9 @@ class MetaLearner:
         self.model.load_state_dict(state["model"])
         if state["opt"] is None:
             self._opt = None
-        elif self._opt is not None:
+        else:
+            if self._opt is None:
+                self._opt = self._adam()
             self._opt.load_state_dict(state["opt"])
         self.n_updates, self.version = state["n_updates"], state["version"]
         self._pools.clear()

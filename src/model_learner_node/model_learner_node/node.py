@@ -52,6 +52,7 @@ from .in_peel import InPeel
 from .in_peel_node import InPeelTopics
 from .online import OnlineLearner, task_number
 from .parameters import NODE_NAME, SPECS
+from .resume import LearnerStateError
 
 JOIN_TIMEOUT_S = 10.0  # wall s the worker gets to finish a running update at shutdown
 
@@ -65,6 +66,8 @@ class LearnerNode(NamedRefusals, Node):
         torch.set_num_threads(values["node.threads"])
         try:
             self.learner = OnlineLearner(values, producer=self.get_fully_qualified_name())
+        except LearnerStateError as exc:
+            raise PeelError(f"parameter 'node.resume': {exc}") from None
         except PeelError as exc:
             raise PeelError(f"parameter 'node.init_model': {exc}") from None
         self.timeout_s = float(values["node.swap_timeout_s"])
@@ -107,11 +110,21 @@ class LearnerNode(NamedRefusals, Node):
         """A finished task, queued for the worker (unless :meth:`decode` drops it); it ends
         the fast step's task."""
         traj = self.decode(msg)
-        if traj is None:
+        if traj is None or self.learned_already(traj):
             return
         if self.in_peel is not None:
             self.in_peel.end_task(task_number(traj, self.learner.n_tasks + 1) - 1)
         self.queue.put(traj)
+
+    def learned_already(self, traj: Trajectory, cell: str = "") -> bool:
+        """True (and logged) for a task learned before a restart, received again from the
+        bridge's history (``/peel/trajectory`` is transient local)."""
+        if not self.learner.has_learned(traj):
+            return False
+        where = f"{cell} " if cell else ""
+        self.get_logger().info(f"{where}task {task_number(traj, 0)}: learned before the "
+                               f"restart; dropped")
+        return True
 
     def decode(self, msg: Float64MultiArray) -> Trajectory | None:
         """The trajectory of ``msg``; None for one that does not decode or holds non-finite

@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,14 @@ from peel_msgs_py.trajectory import Trajectory
 
 from .gate import GateConfig, HeldOutGate
 from .replay import ReplayPool
+from .resume import (
+    LEARNED_KEPT,
+    STATE_FILE,
+    LearnerState,
+    load_state,
+    save_state,
+    trajectory_digest,
+)
 
 _NUMBER_RE = re.compile(r"model_v(\d+)")
 
@@ -63,6 +72,12 @@ def model_file(out_dir: Path, number: int) -> Path:
     return out_dir / f"model_v{number:04d}.safetensors"
 
 
+def last_number(out_dir: Path) -> int:
+    """The highest NNNN of the ``model_vNNNN.safetensors`` in ``out_dir`` (0: none)."""
+    found = [_NUMBER_RE.fullmatch(p.stem) for p in out_dir.glob("model_v*.safetensors")]
+    return max((int(m.group(1)) for m in found if m), default=0)
+
+
 def task_number(traj: Trajectory, fallback: int) -> int:
     """1-based number of the task ``traj`` finished: ``meta.task_index + 1`` as the simulator
     set it (the number it waits for), else ``fallback`` (the count of trajectories seen)."""
@@ -79,13 +94,19 @@ class OnlineLearner:
     """Replay pool + Algorithm 1 (or baseline 2) + checked, named checkpoints (module doc)."""
 
     def __init__(self, values: dict[str, Any], producer: str = "model_learner_node") -> None:
+        self.out_dir = Path(values["node.out_dir"])
+        self.resumed = load_state(self.out_dir) if values["node.resume"] else None
         init = values["node.init_model"]
-        self.init_path = shipped_checkpoint() if not init else Path(init)
+        if self.resumed is not None and self.resumed.checkpoint:
+            self.init_path = self.out_dir / self.resumed.checkpoint
+        else:
+            self.init_path = shipped_checkpoint() if not init else Path(init)
         self.predictor = load_checkpoint(self.init_path)
         check_finite_outputs(self.predictor, what=f"the starting model {self.init_path.name}")
         self.producer = producer
         m = _NUMBER_RE.search(self.init_path.name)
-        self.number = int(m.group(1)) if m else 0  # of the last file written
+        # of the last file written; never one already in out_dir (none is overwritten)
+        self.number = max(int(m.group(1)) if m else 0, last_number(self.out_dir))
         self.method = values["node.method"]
         if self.method == "maml":
             from .maml import MamlConfig, MetaLearner
@@ -97,17 +118,52 @@ class OnlineLearner:
 
             self.learner = HistoryRetrainer(self.predictor, Baseline2Config.from_params(values))
         self.pool = ReplayPool(capacity=values["node.pool_capacity"] or None)
-        self.out_dir = Path(values["node.out_dir"])
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         self.n_tasks = 0
+        self.checkpoint = ("", "")  # (file name, SHA-256) of the last update written
+        self.learned: deque[str] = deque(maxlen=LEARNED_KEPT)  # digests of the tasks learned
+        if self.resumed is not None:
+            self.go_on(self.resumed)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+
+    def go_on(self, state: LearnerState) -> None:
+        """Continue from a stopped learner's ``state`` (:mod:`~model_learner_node.resume`)."""
+        self.pool.extend(state.pool)
+        self.n_tasks, self.number = state.n_tasks, max(self.number, state.number)
+        self.checkpoint = (state.checkpoint, state.sha256)
+        self.learned.extend(state.learned)
+        full = self.learner.state()
+        full.update(state.learner)
+        self.learner.restore(full)
 
     def describe(self) -> str:
+        if self.resumed is not None:
+            return (f"{self.method} resumed from {STATE_FILE} ({self.n_tasks} tasks seen, "
+                    f"{len(self.pool)} in the replay pool, weights {self.init_path.name}), "
+                    f"writing to {self.out_dir}")
         return f"{self.method} from {self.init_path.name}, writing to {self.out_dir}"
+
+    def save(self) -> None:
+        """Write the state a restarted learner goes on from (:mod:`~model_learner_node.resume`)."""
+        learner = {k: v for k, v in self.learner.state().items() if k != "model"}
+        save_state(self.out_dir, LearnerState(*self.checkpoint, self.number, self.n_tasks,
+                                              self.pool.trajectories, learner, list(self.learned)))
+
+    def has_learned(self, traj: Trajectory) -> bool:
+        """Whether this very task was learned already (a restarted learner receives the
+        bridge's recent tasks again: ``/peel/trajectory`` is transient local)."""
+        return trajectory_digest(traj) in self.learned
 
     def learn(self, traj: Trajectory, log: Any) -> UpdateReport:
         """One update on a finished task: ``offered`` with the checkpoint written, ``failed``
-        (weights restored) or ``skipped`` (nothing to learn from)."""
+        (weights restored) or ``skipped`` (nothing to learn from); then the state a restarted
+        learner goes on from (:meth:`save`, after the checkpoint)."""
+        report = self._learn(traj, log)
+        self.save()
+        return report
+
+    def _learn(self, traj: Trajectory, log: Any) -> UpdateReport:
         self.n_tasks += 1
+        self.learned.append(trajectory_digest(traj))
         task = task_number(traj, self.n_tasks)
         saved = self.learner.state()
         try:
@@ -133,8 +189,9 @@ class OnlineLearner:
         path = save_checkpoint(model_file(self.out_dir, self.number), self.predictor, meta)
         log.info(f"task {task}: Algorithm 1 done in {report.get('update_s', 0):.2f} s, "
                  f"wrote {path.name}")
-        return UpdateReport(self.producer, task, OFFERED, sha256=str(
-            read_checkpoint_config(path)["safetensors_sha256"]), path=str(path.resolve()))
+        self.checkpoint = (path.name, str(read_checkpoint_config(path)["safetensors_sha256"]))
+        return UpdateReport(self.producer, task, OFFERED, sha256=self.checkpoint[1],
+                            path=str(path.resolve()))
 
     def keep(self, traj: Trajectory, log: Any) -> None:
         """Add ``traj`` to the replay pool unless a measured value in it is not finite."""

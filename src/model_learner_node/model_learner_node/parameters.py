@@ -18,6 +18,9 @@ NODE_NAME = "model_learner_node"
 NODE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("node.init_model", str, "", "checkpoint to start from; empty = the shipped one"),
     ParamSpec("node.out_dir", str, "runs/models", "where model_vNNNN.safetensors are written"),
+    ParamSpec("node.resume", bool, True,
+              "go on from the learner state in node.out_dir (learner_state.safetensors: "
+              "weights, replay pool, meta-optimiser) when there is one"),
     ParamSpec("node.method", str, "maml", "maml = Algorithm 1; retrain = baseline 2",
               choices=("maml", "retrain")),
     ParamSpec("node.planner_node", str, "peel_planner_node",

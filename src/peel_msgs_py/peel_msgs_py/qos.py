@@ -70,8 +70,9 @@ class QosSpec:
 
 #: Streams sampled by the simulator / plant and the planner's command.
 STREAM_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
-#: One finished trajectory per task.
-TRAJECTORY_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
+#: One finished trajectory per task; each must arrive, and a learner that (re)starts late gets
+#: the recent ones (docs/fleet.md, "The learner dies and comes back").
+TRAJECTORY_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, TRANSIENT_LOCAL)
 #: Latched state: the current value reaches subscribers that join later.
 LATCHED_QOS = QosSpec(KEEP_LAST, 1, RELIABLE, TRANSIENT_LOCAL)
 #: The learner's per-task reports: each must arrive, a late reader gets the recent ones.
