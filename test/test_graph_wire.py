@@ -4,7 +4,10 @@
   the simulator waits for (the planner held with SIGSTOP meanwhile, so that the stranger's are
   the only answers), a NaN wrench, a trajectory holding NaN: each dropped or clamped where it
   enters, logged with topic and field, and the run completes with its summary; the bridge
-  executed 20 mm/s at most; the learner's report on the last update is in the bag;
+  executed 20 mm/s at most; the learner's report on the last update is in the bag. The
+  stranger takes over early in a task (the simulator held with SIGSTOP at a sample 20 mm short
+  of the end while the planner drops the NaN wrench), so that the simulator waits for the
+  stranger's answer, never for the learner's update that the held planner cannot swap in;
 * a second ``peel graph`` on the domain of a running one (its planner held with SIGSTOP from
   its start, so that it runs however long the second takes to look) is refused before it starts anything
   (exit 5, one line naming the domain), and the first run's bag holds its own data only;
@@ -39,15 +42,19 @@ from peel_bag.bag import FAIL_AFTER_ENV
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
 
+HOLD_Q_MM = 5.0  # the simulator is held at a sample nearer the start than this (q_ter 25 mm)
+
+
 class Stranger:
-    """A node of nobody's graph. It subscribes /peel/wrench from the start (a reader is not a
-    graph: the launcher's look for other graphs does not see it); once its publishers are added
-    and matched, the first sample it sees stops the planner (SIGSTOP) and it answers every
-    sample with its own commands until disarmed."""
+    """A node of nobody's graph. It subscribes /peel/wrench and /peel/pose from the start (a
+    reader is not a graph: the launcher's look for other graphs does not see it). Once asked
+    (:meth:`hold_sim`), it stops the simulator (SIGSTOP) at the next sample with q below
+    :data:`HOLD_Q_MM`; :meth:`take_over` then stops the planner and lets the simulator go on,
+    and the stranger answers every sample with its own commands until disarmed."""
 
     def __init__(self) -> None:
         import rclpy
-        from geometry_msgs.msg import WrenchStamped
+        from geometry_msgs.msg import PoseStamped, WrenchStamped
         from rclpy.node import Node
 
         from peel_msgs_py import topics
@@ -56,9 +63,12 @@ class Stranger:
         self.node = Node("stranger")
         self.node.create_subscription(WrenchStamped, topics.WRENCH, self.on_wrench,
                                       topics.qos_profile(topics.WRENCH, subscriber=True))
+        self.node.create_subscription(PoseStamped, topics.POSE, self.on_pose,
+                                      topics.qos_profile(topics.POSE, subscriber=True))
         self.stamps: list[tuple[int, str]] = []  # (stamp ns, frame) of the simulator's samples
         self.planner: int | None = None
-        self.armed = self.stopped = self.may_stop = False
+        self.sim: int | None = None  # the simulator to hold, once asked
+        self.armed = self.stopped = self.held = False
         self._last_bad = -math.inf
         self.cmd = self.wrench = self.traj = None
         self._stop = threading.Event()
@@ -97,11 +107,26 @@ class Stranger:
         if not (msg.header.frame_id.startswith("peel_task_") and math.isfinite(msg.wrench.force.x)):
             return
         self.stamps.append((t, msg.header.frame_id))
-        if self.may_stop and not self.stopped and self.planner is not None and self.matched():
-            os.kill(self.planner, signal.SIGSTOP)  # its answers in flight are the last ones
-            self.stopped = self.armed = True
         if self.armed:
             self.answer(msg.header)
+
+    def on_pose(self, msg) -> None:
+        early = msg.header.frame_id.startswith("peel_task_") and \
+            msg.pose.position.x * 1000.0 < HOLD_Q_MM
+        if early and self.sim is not None and not self.held:
+            os.kill(self.sim, signal.SIGSTOP)  # 20 mm or more left: commands to answer
+            self.held = True
+
+    def hold_sim(self, sim_pid: int) -> None:
+        """Stop the simulator at its next sample with q below :data:`HOLD_Q_MM`."""
+        self.sim = sim_pid
+
+    def take_over(self) -> None:
+        """Stop the planner (its answers in flight are its last ones), answer every sample from
+        now on, and let the held simulator go on."""
+        os.kill(self.planner, signal.SIGSTOP)
+        self.stopped = self.armed = True
+        os.kill(self.sim, signal.SIGCONT)
 
     def answer(self, header) -> None:
         """NaN (stamped, then unstamped) and 1e9 m/s for the sample of ``header``."""
@@ -155,9 +180,10 @@ class Stranger:
 
     def resume_planner(self) -> None:
         self.armed = False
-        if self.stopped and self.planner is not None:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(self.planner, signal.SIGCONT)
+        for pid in (self.planner if self.stopped else None, self.sim if self.held else None):
+            if pid is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGCONT)
 
     def close(self) -> None:
         import rclpy
@@ -183,8 +209,10 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         tmp_path: Path, ros_domain: str) -> None:
     bag = tmp_path / "bag"
     cmd = graph_cmd(tmp_path, "--record", str(bag), tasks=2)
-    override = tmp_path / "override.yaml"  # longer tasks: many control periods to answer
-    override.write_text(override.read_text().replace("q_ter_mm: 6.0", "q_ter_mm: 25.0"))
+    override = tmp_path / "override.yaml"  # longer tasks: many control periods to answer,
+    override.write_text(override.read_text().replace(  # at real time: seconds to match in
+        "q_ter_mm: 6.0", "q_ter_mm: 25.0").replace(
+        "      cmd_timeout_s: 5.0\n", "      cmd_timeout_s: 5.0\n      real_time_factor: 1.0\n"))
     stranger = Stranger()
     proc = subprocess.Popen(cmd, env=node_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -193,22 +221,23 @@ def test_bad_commands_wrench_and_trajectory_are_refused_and_the_run_completes(
         lines = Lines(proc)
         planner = int(lines.wait_for(r"started peel_planner_node \(pid (\d+)\)", 120).group(1))
         stranger.add_publishers(planner)  # the launcher has looked for other graphs
-        # the NaN wrench first, while the planner runs (the stranger's commands below can end
-        # both tasks with a safety stop within a second of the planner's resume): one a second
+        sim = int(lines.wait_for(r"started peel_sim_node \(pid (\d+)\)", 120).group(1))
+        _wait(stranger.matched, 300, "the stranger's publishers to match")
+        stranger.hold_sim(sim)
+        _wait(lambda: stranger.held, 300, "an early sample of a task")
+        # the NaN wrench first, while the planner runs and the task is held: one a second
         # until the planner logs its drop
         plan_log = tmp_path / "run" / "logs" / "peel_planner_node.log"
-        _wait(lambda: bool(stranger.stamps) and stranger.matched()
-              and stranger.send_bad_wrench_every(1.0)
+        _wait(lambda: bool(stranger.stamps) and stranger.send_bad_wrench_every(1.0)
               and "dropped a /peel/wrench message" in plan_log.read_text(), 300,
               "the planner to drop the NaN wrench")
-        stranger.may_stop = True
-        _wait(lambda: stranger.stopped, 300, "a sample once the stranger is matched")
+        stranger.take_over()
         stranger.send_bad_wrench_and_trajectory()
         # the simulator re-sends a waiting sample every node.cmd_timeout_s; it logs a clamp
         # only for a command it executed
         _wait(lambda: "clamped a /peel/cmd_vel" in sim_log.read_text(), 300,
               "the simulator to execute the stranger's command")
-        stranger.resume_planner()  # before the flush: a stopped planner acknowledges nothing
+        stranger.resume_planner()  # before the flush: a stopped node acknowledges nothing
         assert stranger.flush(300), "the stranger's messages were not acknowledged"
         stranger.close()  # done: it leaves the graph before the recorder is stopped
         rc = proc.wait(timeout=400)

@@ -58,6 +58,16 @@ def test_a_missing_cell_holds_the_others_back_once_for_wait_s() -> None:
     assert key is None and left is not None
 
 
+def test_a_task_learned_before_a_restart_is_owed_by_nobody() -> None:
+    order = TaskOrder(CELLS[:2], wait_s=30.0, clock=Clock())
+    order.learned("/cell_0", 1)  # a restarted learner dropped both cells' task 1
+    order.add("/cell_0", 2, "a2")
+    key, left = order.due()
+    assert key is None and left == pytest.approx(30.0)  # /cell_1's task 1 is still owed
+    order.learned("/cell_1", 1)
+    assert _take(order) == ("/cell_0", 2)  # at once: nobody owes an earlier key
+
+
 def test_get_returns_none_once_stopped() -> None:
     order = TaskOrder(CELLS, wait_s=1.0)
     order.put(None)

@@ -72,6 +72,14 @@ class TaskOrder:
             self._late.discard(index)
             self._cv.notify_all()
 
+    def learned(self, cell: str, task: int) -> None:
+        """``task`` of ``cell`` was learned before (a restarted learner's dropped one): the
+        cell owes the task after it, so nobody waits for this one."""
+        index = list(self.cells).index(cell)
+        with self._cv:
+            self._learned[index] = max(self._learned.get(index, 0), task)
+            self._cv.notify_all()
+
     def put(self, item: None) -> None:
         """``put(None)``: stop; ``get`` returns None from now on (the node's worker protocol)."""
         with self._cv:

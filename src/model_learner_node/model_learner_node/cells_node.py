@@ -139,13 +139,17 @@ class Cells:
     # -- subscriptions ----------------------------------------------------------------------
     def on_trajectory(self, cell: str, msg: Float64MultiArray) -> None:
         traj = self.decode(msg)
-        if traj is not None and self.learner.has_learned(traj):
-            self.node.get_logger().info(f"{cell}: task {task_number(traj, 0)}: learned before "
-                                        f"the restart; dropped")  # the bridge's history
-        elif traj is not None:
-            state = self.cells[cell]
-            state.tasks_seen += 1
-            self.order.add(cell, task_number(traj, state.tasks_seen), traj)
+        if traj is None:
+            return
+        state = self.cells[cell]
+        state.tasks_seen += 1
+        task = task_number(traj, state.tasks_seen)
+        if self.learner.has_learned(traj):  # the bridge's history, after a restart
+            self.order.learned(cell, task)
+            self.node.get_logger().info(f"{cell}: task {task}: learned before the restart; "
+                                        f"dropped")
+        else:
+            self.order.add(cell, task, traj)
 
     def on_model_info(self, cell: str, msg: String) -> None:
         """The cell's planner announced a model: subscribe the cell once it plans with the
