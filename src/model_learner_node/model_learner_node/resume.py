@@ -121,10 +121,11 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, np.ndarray]]:
             meta = dict(f.metadata() or {})
             arrays = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open)
     except (OSError, SafetensorError) as exc:
-        raise LearnerStateError(f"learner state {path}: not a readable safetensors file ({exc})") from None
+        raise LearnerStateError(f"learner state {path}: not a readable safetensors file "
+                                f"({exc})") from None
     if meta.get("format") != FORMAT:
         raise LearnerStateError(f"learner state {path}: format {meta.get('format')!r}, "
-                        f"expected {FORMAT!r}")
+                                f"expected {FORMAT!r}")
     return meta, arrays
 
 
@@ -151,7 +152,8 @@ def load_state(out_dir: Path) -> LearnerState | None:
         state = LearnerState(meta["checkpoint"], meta["sha256"], int(meta["number"]),
                              int(meta["n_tasks"]), pool, learner, learned)
     except (KeyError, ValueError, TypeError, IndexError, PeelError) as exc:
-        raise LearnerStateError(f"learner state {path}: malformed ({type(exc).__name__}: {exc})") from None
+        raise LearnerStateError(f"learner state {path}: malformed "
+                                f"({type(exc).__name__}: {exc})") from None
     _check_checkpoint(path, out_dir, state)
     return state
 
@@ -162,9 +164,10 @@ def _check_checkpoint(path: Path, out_dir: Path, state: LearnerState) -> None:
     try:
         recorded = read_checkpoint_config(out_dir / state.checkpoint).get("safetensors_sha256")
     except PeelError as exc:
-        raise LearnerStateError(f"learner state {path}: its weights {state.checkpoint}: {exc}") from None
+        raise LearnerStateError(f"learner state {path}: its weights {state.checkpoint}: "
+                                f"{exc}") from None
     if recorded != state.sha256:
-        raise LearnerStateError(f"learner state {path}: its weights {state.checkpoint} have SHA-256 "
-                        f"{str(recorded)[:12]}..., the state was written with "
-                        f"{state.sha256[:12]}...: remove the state or the folder, or set "
-                        f"node.resume:=false")
+        raise LearnerStateError(f"learner state {path}: its weights {state.checkpoint} have "
+                                f"SHA-256 {str(recorded)[:12]}..., the state was written with "
+                                f"{state.sha256[:12]}...: remove the state or the folder, or "
+                                f"set node.resume:=false")
