@@ -116,14 +116,13 @@ class LearnerNode(NamedRefusals, Node):
             self.in_peel.end_task(task_number(traj, self.learner.n_tasks + 1) - 1)
         self.queue.put(traj)
 
-    def learned_already(self, traj: Trajectory, cell: str = "") -> bool:
+    def learned_already(self, traj: Trajectory) -> bool:
         """True (and logged) for a task learned before a restart, received again from the
         bridge's history (``/peel/trajectory`` is transient local)."""
         if not self.learner.has_learned(traj):
             return False
-        where = f"{cell} " if cell else ""
-        self.get_logger().info(f"{where}task {task_number(traj, 0)}: learned before the "
-                               f"restart; dropped")
+        self.get_logger().info(f"task {task_number(traj, 0)}: learned before the restart; "
+                               f"dropped")
         return True
 
     def decode(self, msg: Float64MultiArray) -> Trajectory | None:
