@@ -159,3 +159,77 @@ def test_sigkilled_recorder_keeps_flushed_chunks(tmp_path, ros_domain) -> None:
     assert len(xs) >= N // 2 and xs == [float(k) for k in range(int(xs[0]), N)]
     assert len(bagread.read_trajectories(bag)) == 1
 
+
+
+LATE = textwrap.dedent("""
+    import sys
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.node import Node
+    from std_msgs.msg import Float64MultiArray, Int64
+    from peel_msgs_py import topics as T
+    from peel_msgs_py.ros.messages import trajectory_msg
+    from peel_msgs_py.trajectory import Trajectory
+
+    def task(k):
+        return trajectory_msg(Trajectory(t=[0.0, 0.1], q=[0.0, 25.0], v=[0.0, 250.0], u=[5.0, 0.0],
+                                         fx=[1.0, 2.0], fz=[0.0, -1.0], psi=[0.1, 0.1], outcome="done",
+                                         params={}, meta={"task_index": k}))
+
+    rclpy.init()
+    node = Node("fake_sim")
+    traj = node.create_publisher(Float64MultiArray, T.TRAJECTORY, T.qos_profile(T.TRAJECTORY))
+    version = node.create_publisher(Int64, T.MODEL_VERSION, T.qos_profile(T.MODEL_VERSION))
+    version.publish(Int64(data=3))
+    traj.publish(task(1))  # peeled before anyone records
+    print("ready", flush=True)
+    while min(p.get_subscription_count() for p in (traj, version)) < 1:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    traj.publish(task(2))
+    ok = traj.wait_for_all_acked(Duration(seconds=60)) and version.wait_for_all_acked(Duration(seconds=60))
+    print("published" if ok else "not acknowledged", flush=True)
+    sys.stdin.readline()  # alive until the test has stopped the recorder
+    node.destroy_node()
+    rclpy.shutdown()
+""")
+
+
+def test_a_late_recorder_takes_the_current_model_but_no_task_peeled_before_it(tmp_path,
+                                                                                ros_domain) -> None:
+    """``/peel/trajectory`` keeps a bridge's last 10 tasks (transient local) for a learner that
+    comes back; a recorder started later records the latched model version, and only the task
+    that finished while it ran."""
+    pub = subprocess.Popen([sys.executable, "-c", LATE], stdin=subprocess.PIPE,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert pub.stdout.readline().strip() == "ready", pub.stderr.read()
+        bag = tmp_path / "late"
+        rec = _start_recorder(bag)
+        try:
+            assert pub.stdout.readline().strip() == "published"
+            _wait_for_trajectories(bag, tmp_path, 1)
+        finally:
+            rec.send_signal(signal.SIGINT)
+            _, err = rec.communicate(timeout=60)
+        assert rec.returncode == 0, err
+    finally:
+        pub.communicate("\n", timeout=60)
+    assert [t.meta["task_index"] for t in bagread.read_trajectories(bag)] == [2]
+    assert bagread.read_topics(bag)["/peel/model_version"]["version"].tolist() == [3]
+
+
+def _wait_for_trajectories(bag, tmp, n: int) -> None:
+    """Until the bag's flushed chunks (read from a copy, repaired) hold ``n`` trajectories."""
+    deadline = time.monotonic() + 120  # only a hang reaches this
+    while time.monotonic() < deadline:
+        copy = tmp / f"copy_{time.monotonic_ns()}"
+        shutil.copytree(bag, copy)
+        try:
+            if len(bagread.read_trajectories(copy, repair=True)) >= n:
+                return
+        except (PeelError, KeyError, ValueError, IndexError):
+            pass  # nothing flushed yet
+        finally:
+            shutil.rmtree(copy)
+        time.sleep(0.1)
+    raise AssertionError(f"the bag never held {n} trajectories")

@@ -15,6 +15,11 @@ disk) stops the recording: :func:`record` raises the writer's
 (a namespace, docs/fleet.md) it records that cell's topics (``/cell_0/peel/wrench``, ...) under
 the table's names (``/peel/wrench``): each cell's bag has the one-cell layout.
 
+``/peel/trajectory`` is the exception to "the profile its publishers offer": its publishers keep
+their last 10 tasks for a learner that comes back (transient local, docs/interfaces.md), but those
+are tasks peeled before the recording; the recorder reads it volatile (:data:`LIVE_ONLY`), so a bag
+holds only the tasks that finished while it ran, whenever ``peel record`` is started.
+
 The subscriptions keep ``RECORDER_DEPTH`` messages per topic (the publishers' own depth is 10):
 a recorder whose executor is held up for a while (a loaded machine, a large chunk write) takes
 what its DDS reader already holds instead of losing the oldest. On a stop the recorder first
@@ -34,9 +39,10 @@ from typing import Any
 
 import rclpy
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 
 from peel_msgs_py.ros.qos import profile_to_bag
-from peel_msgs_py.topics import qos_profile, topic, under
+from peel_msgs_py.topics import TRAJECTORY, qos_profile, topic, under
 
 from .bag import BagWriteError, BagWriter, message_definition
 
@@ -45,6 +51,8 @@ NODE_NAME = "peel_recorder"
 TICK_PERIOD_S = 0.2
 #: Messages each subscription's reader keeps until the executor takes them.
 RECORDER_DEPTH = 1000
+#: Topics whose kept history is past events, not current state: read volatile (module docstring).
+LIVE_ONLY = frozenset({TRAJECTORY})
 #: Longest time a stop spends taking the messages the readers hold (s).
 DRAIN_LIMIT_S = 5.0
 
@@ -112,9 +120,12 @@ class RecorderNode(Node):
 
 
 def recorder_qos(spec: Any) -> Any:
-    """The subscriber profile of ``spec`` with a history of at least ``RECORDER_DEPTH``."""
+    """The subscriber profile of ``spec`` with a history of at least ``RECORDER_DEPTH``, volatile
+    for the :data:`LIVE_ONLY` topics."""
     profile = qos_profile(spec, subscriber=True)
     profile.depth = max(profile.depth, RECORDER_DEPTH)
+    if spec.name in LIVE_ONLY:
+        profile.durability = DurabilityPolicy.VOLATILE
     return profile
 
 

@@ -1,10 +1,13 @@
 """``peel fleet``: K peeling cells and one learner as separate processes (docs/fleet.md).
 
     peel fleet --cells 3 --tasks 2 [--plant sim|plant] [--seed S] [--record BAG] [--out DIR]
+    peel fleet --plant nachi --nachi-controllers HOST:PORT[,HOST:PORT...] [--cells K] ...
 
 Cell c runs under the namespace ``/cell_<c>`` (every topic and the planner's services move with
 it, docs/graph.md): a simulator bridge on its own task sequence (``node.seed`` =
-:func:`cell_seed`: the plant randomized per cell) and a planner. One learner, at the root,
+:func:`cell_seed`: the plant randomized per cell) and a planner. With ``--plant nachi`` cell c
+runs the Nachi bridge to the c-th controller of ``--nachi-controllers`` instead (one controller
+per cell; ``--cells``, when given, must be their number). One learner, at the root,
 serves every cell (``node.cells``, :mod:`model_learner_node.cells_node`): it learns the pooled
 peels in (task, cell) order and swaps each update into every cell's planner. The launcher
 prints a line per finished task and per update, each naming its cell; a cell whose node dies
@@ -42,16 +45,21 @@ from peel_msgs_py.cliargs import ArgumentParser, nonnegative_int, positive_int, 
 from peel_msgs_py.errors import DomainTaken, PeelError
 from peel_msgs_py.modelinfo import SWAPPED
 from peel_msgs_py.outputs import OutputDir, check_new_path
+from peel_msgs_py.params import load_node_params
 from peel_msgs_py.task import mppi_seed
 
 from .children import Child, Interrupt, child_env, tear_down
 from .fleet_report import update_times
-from .graph import BAD_INPUT, UPDATE_FAILED, _task_cost, task_line
-from .node_args import LEARNER, check_node_params, graph_params, node_command, node_settings
+from .graph import BAD_INPUT, UPDATE_FAILED, _task_cost, nachi_link, task_line
+from .node_args import LEARNER, NACHI, check_node_params, graph_params, node_command, node_settings, node_specs
 
 LEARNER_NODE = "model_learner_node"
 #: Stream of :func:`~peel_msgs_py.task.task_seed` the cells' seeds are drawn from.
 CELL_SEED_STREAM = 7
+#: Cells of a run on the simulator when --cells is not given.
+DEFAULT_CELLS = 2
+#: A controller of ``--nachi-controllers``: (host, port).
+Controller = tuple[str, int]
 
 
 def file_number(path: str) -> int:
@@ -72,12 +80,16 @@ def cell_seed(seed: int, c: int) -> int:
 
 def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="peel fleet", description=__doc__.split("\n\n")[0])
-    p.add_argument("--cells", type=positive_int, default=2, metavar="K",
-                   help="peeling cells, each a bridge and a planner (default 2)")
+    p.add_argument("--cells", type=positive_int, default=None, metavar="K",
+                   help=f"peeling cells, each a bridge and a planner (default {DEFAULT_CELLS}; "
+                        "with --plant nachi the number of controllers)")
     p.add_argument("--tasks", type=positive_int, default=None, metavar="T",
                    help="consecutive tasks per cell (default: graph.tasks)")
-    p.add_argument("--plant", choices=("sim", "plant"), default=None,
-                   help="every cell on the simulator or the plant (default: graph.plant)")
+    p.add_argument("--plant", choices=("sim", "plant", "nachi"), default=None,
+                   help="every cell on the simulator, the plant, or a Nachi robot controller of "
+                        "its own (--nachi-controllers) (default: graph.plant)")
+    p.add_argument("--nachi-controllers", default=None, metavar="HOST:PORT[,HOST:PORT...]",
+                   help="with --plant nachi: one controller per cell, cell c on the c-th")
     p.add_argument("--seed", type=nonnegative_int, default=None,
                    help="seed of the run; each cell's task sequence seed is derived from it")
     p.add_argument("--record", metavar="BAG", default=None,
@@ -107,21 +119,83 @@ class FleetRun:
     bag: Path | None
     join_after: int | None
     out: OutputDir
+    controllers: list[Controller] = field(default_factory=list)  # --plant nachi: one per cell
+
+    @property
+    def bridge(self) -> str:
+        """The node that drives each cell's plant: the simulator's or the Nachi bridge."""
+        return NACHI if self.plant == "nachi" else "peel_sim_node"
+
+    def controller(self, c: int) -> str | None:
+        """Cell c's controller as ``HOST:PORT`` (None on the simulator)."""
+        return controller_name(*self.controllers[c]) if self.controllers else None
 
     def settings(self) -> dict[str, dict[str, dict[str, Any]]]:
         """cell -> node -> ``-p`` settings, and ``""`` -> the learner's."""
         sets: dict[str, dict[str, dict[str, Any]]] = {}
         for c, cell in enumerate(self.cells):
+            link = nachi_link(*self.controllers[c]) if self.controllers else None
             nodes = node_settings(self.plant, self.tasks, cell_seed(self.seed, c), self.run_dir,
-                                  self.bag is not None)
+                                  self.bag is not None, link=link)
             nodes.pop(LEARNER_NODE)
-            nodes["peel_sim_node"]["node.learner_node"] = cell_producer(LEARNER, cell)
-            for name in ("peel_sim_node", "peel_planner_node"):  # a cell's nodes bring
+            nodes[self.bridge]["node.learner_node"] = cell_producer(LEARNER, cell)
+            for name in (self.bridge, "peel_planner_node"):  # a cell's nodes bring
                 nodes[name]["node.autostart"] = True  # themselves up (configure + activate)
             sets[cell] = nodes
         sets[""] = {LEARNER_NODE: {"use_sim_time": False, "node.cells": list(self.cells),
                                    "node.out_dir": str((self.run_dir / "models").resolve())}}
         return sets
+
+
+def controller_name(host: str, port: int) -> str:
+    """``HOST:PORT`` (an IPv6 host in brackets)."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def parse_controller(item: str) -> Controller:
+    """One ``HOST:PORT`` (IPv6: ``[ADDR]:PORT``); PeelError naming it when malformed."""
+    host, sep, port = item.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    elif ":" in host:
+        host = ""  # a bare IPv6 address: which colon ends it is ambiguous
+    if not sep or not host or any(ch.isspace() for ch in host) or \
+            not re.fullmatch(r"[0-9]+", port):
+        raise PeelError(f"--nachi-controllers: {item!r} is not HOST:PORT "
+                        f"(an IPv6 address as [ADDR]:PORT)")
+    if not 1 <= int(port) <= 65535:
+        raise PeelError(f"--nachi-controllers: port {port} of {item!r} is not in 1..65535")
+    return host, int(port)
+
+
+def parse_controllers(text: str) -> list[Controller]:
+    """``HOST:PORT[,HOST:PORT...]`` in cell order; PeelError on a malformed or repeated one."""
+    out: list[Controller] = []
+    for item in text.split(","):
+        host, port = parse_controller(item.strip())
+        if (host.lower(), port) in [(h.lower(), p) for h, p in out]:
+            raise PeelError(f"--nachi-controllers: {item.strip()} is given twice "
+                            f"(one controller per cell)")
+        out.append((host, port))
+    return out
+
+
+def fleet_cells(args: Any, plant: str) -> tuple[int, list[Controller]]:
+    """The number of cells and, with ``--plant nachi``, each cell's controller (one per cell:
+    ``--cells`` defaults to their number and must match it when given)."""
+    text = getattr(args, "nachi_controllers", None)
+    if plant != "nachi":
+        if text is not None:
+            raise PeelError("--nachi-controllers needs --plant nachi")
+        return (args.cells if args.cells is not None else DEFAULT_CELLS), []
+    if text is None:
+        raise PeelError("--plant nachi needs --nachi-controllers HOST:PORT[,HOST:PORT...] "
+                        "(one controller per cell)")
+    controllers = parse_controllers(text)
+    if args.cells is not None and args.cells != len(controllers):
+        raise PeelError(f"--cells {args.cells} but {len(controllers)} controller(s) in "
+                        f"--nachi-controllers: one controller per cell")
+    return len(controllers), controllers
 
 
 def resolve(args: Any) -> FleetRun:
@@ -130,7 +204,9 @@ def resolve(args: Any) -> FleetRun:
     if override is not None and not Path(override).is_file():
         raise PeelError(f"--params: no such file {override}")
     gp = graph_params(override)
-    if args.join_after is not None and args.cells < 2:
+    plant = args.plant or gp["graph.plant"]
+    cells, controllers = fleet_cells(args, plant)
+    if args.join_after is not None and cells < 2:
         raise PeelError("--join-after needs --cells 2 or more (the last cell joins late)")
     run_dir = Path(args.out) if args.out else \
         Path(gp["graph.out_dir"]) / time.strftime("fleet-%Y%m%d-%H%M%S")
@@ -138,15 +214,23 @@ def resolve(args: Any) -> FleetRun:
     bag = Path(args.record) if args.record else None
     if bag is not None:
         check_new_path(bag, "--record")
-    run = FleetRun(override, gp, [cell_name(c) for c in range(args.cells)],
-                   args.tasks if args.tasks is not None else gp["graph.tasks"],
-                   args.plant or gp["graph.plant"], args.seed if args.seed is not None
-                   else gp["graph.seed"], run_dir, bag, args.join_after, out)
-    if run.plant == "nachi":
-        raise PeelError("peel fleet runs simulated cells: graph.plant must be sim or plant")
+    run = FleetRun(override, gp, [cell_name(c) for c in range(cells)],
+                   args.tasks if args.tasks is not None else gp["graph.tasks"], plant,
+                   args.seed if args.seed is not None else gp["graph.seed"], run_dir, bag,
+                   args.join_after, out, controllers)
     for nodes in run.settings().values():
         check_node_params(override, nodes)
     return run
+
+
+def file_settings(name: str, override: str | None) -> dict[str, Any]:
+    """What node ``name``'s sections of config/<name>.yaml and the override file set (values
+    other than its declared defaults), as ``-p`` settings: rcl applies a ``<name>:`` section to
+    the node at the root only, never to ``/cell_<c>/<name>``, so a cell's nodes get them on the
+    command line (``-p`` settings apply under any namespace)."""
+    values = load_node_params(name, override)
+    return {s.name: values[s.name] for s in node_specs(name)
+            if s.name in values and values[s.name] != s.default}
 
 
 def children_of(run: FleetRun) -> tuple[list[Child], dict[str, list[Child]]]:
@@ -163,8 +247,9 @@ def children_of(run: FleetRun) -> tuple[list[Child], dict[str, list[Child]]]:
             kids.append(Child(f"{cell}/recorder", [
                 sys.executable, "-m", "peel_bag.recorder_cli", "--out",
                 str(run.bag / cell.strip("/")), "--cell", cell], here / "recorder.log"))
-        for name in ("peel_planner_node", "peel_sim_node"):
-            cmd = [*node_command(name, run.override, sets[cell][name]), "-r", f"__ns:={cell}"]
+        for name in ("peel_planner_node", run.bridge):
+            here_sets = {**file_settings(name, run.override), **sets[cell][name]}
+            cmd = [*node_command(name, run.override, here_sets), "-r", f"__ns:={cell}"]
             kids.append(Child(f"{cell}/{name}", cmd, here / f"{name}.log"))
         cells[cell] = kids
     return [learner], cells
@@ -365,8 +450,10 @@ def write_summary(w: FleetWatch) -> int:
     run = w.run
     cells = {}
     for cell, mon in w.mons.items():
+        c = run.cells.index(cell)
         cells[cell] = {
-            "seed": cell_seed(run.seed, run.cells.index(cell)), "dead": cell in w.dead,
+            "seed": cell_seed(run.seed, c), "controller": run.controller(c),
+            "dead": cell in w.dead,
             "results": w.results.get(cell, []),
             "models": [{"version": r.version, "sha256": r.sha256, "producer": r.producer,
                         "task": r.task} for r in mon.updates.records],

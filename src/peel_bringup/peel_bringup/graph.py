@@ -218,8 +218,7 @@ def resolve(args: argparse.Namespace) -> Run:
         replaced = out.earlier is not None and bag.resolve().is_relative_to(run_dir.resolve())
         (check_location if replaced else check_new_path)(bag, "--record")
     plant = args.plant or gp["graph.plant"]
-    link = {key: value for key, value in (("link.host", args.nachi_host),
-                                          ("link.port", args.nachi_port)) if value is not None}
+    link = nachi_link(args.nachi_host, args.nachi_port)
     if link and plant != "nachi":
         raise PeelError("--nachi-host / --nachi-port need --plant nachi")
     effects = check_effects(args.effect, plant)
@@ -232,6 +231,13 @@ def resolve(args: argparse.Namespace) -> Run:
     run = Run(override, gp, tasks, plant, seed, run_dir, bag, link, effects, out, live)
     check_node_params(override, run.settings())
     return run  # nothing is written yet: run_graph creates the folder once the domain is free
+
+
+def nachi_link(host: str | None, port: int | None) -> dict[str, Any]:
+    """The Nachi bridge's ``link.host`` / ``link.port`` settings, those given (the rest from
+    config/peel_nachi_bridge.yaml); checked with the bridge's other parameters."""
+    return {key: value for key, value in (("link.host", host), ("link.port", port))
+            if value is not None}
 
 
 def check_effects(specs: Sequence[str], plant: str) -> tuple[str, ...]:

@@ -87,7 +87,8 @@ def experiment_parser() -> ArgumentParser:
         prog="peel experiment",
         description="Consecutive peels on the plant per method, from one pretrained model "
                     "(paper 4.4): results.json, Fig. 11, Table 1, Fig. 12, report.md. "
-                    "'peel experiment sweep --help' for Table 2.")
+                    "'peel experiment sweep --help' for Table 2, 'peel experiment grid --help' "
+                    "for the levels, 'peel experiment fleet --help' for K cells against one.")
     p.add_argument("--tasks", type=_positive, help="peels per method (default 20)")
     p.add_argument("--methods", help="comma-separated: ol-mppi,baseline1,baseline2")
     seeds = p.add_mutually_exclusive_group()
@@ -187,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
         return _sweep(argv[1:], command)
     if argv and argv[0] == "grid":
         return _grid(argv[1:], command)
+    if argv and argv[0] == "fleet":
+        return _fleet(argv[1:], command)
     args = experiment_parser().parse_args(argv)
     out = OutputDir(args.out, command="peel experiment", force=args.force)
     cfg = _base_cfg(args)
@@ -277,6 +280,47 @@ def _grid(argv: list[str], command: str) -> int:
                        report_only=args.report_only)
     print(json.dumps({"out": summary["files"], "targets": summary["targets"],
                       "missing": summary["missing"]}, indent=1))
+    return 0
+
+
+def fleet_parser() -> ArgumentParser:
+    p = ArgumentParser(
+        prog="peel experiment fleet",
+        description="K cells and one learner (peel fleet) against one cell with the same number "
+                    "of peels, on the plant: the fraction of headroom closed per cell's own task "
+                    "and per peels learned (OUT/summary.{md,json}, headroom.png; finished runs "
+                    "in OUT are reused).")
+    p.add_argument("--cells", type=_positive, default=3, metavar="K", help="cells (default 3)")
+    p.add_argument("--tasks", type=_positive, default=3, metavar="T",
+                   help="tasks per cell (default 3; the one cell peels K x T)")
+    p.add_argument("--seeds", type=_ints, required=True, help="fleet seeds, e.g. 950,951,952")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier run in --out (never a folder peel did not write)")
+    p.add_argument("--workers", type=_positive, help="worker processes of the in-process runs "
+                   "(results do not depend on it; default from config, 1)")
+    # the fleet runs the nodes' config as it is: no planner, plant or model options here, so
+    # the in-process runs cannot differ from the fleet's
+    return p
+
+
+def _fleet(argv: list[str], command: str) -> int:
+    args = fleet_parser().parse_args(argv)
+    earlier = read_marker(args.out) if args.out.is_dir() else None
+    if earlier is None or earlier.get("command") != "peel experiment fleet":
+        OutputDir(args.out, command="peel experiment fleet", force=args.force).create()
+    cfg = load_experiment_config(None)
+    if args.workers is not None:
+        cfg = replace(cfg, workers=args.workers)
+    from .fleet_study import run_fleet_study
+
+    summary = run_fleet_study(cfg, cells=args.cells, tasks=args.tasks, seeds=args.seeds,
+                              out=args.out, checkpoint=_checkpoint(None), command=command)
+    print(json.dumps({"out": summary["files"], "target": summary["target"],
+                      "fleet_by_task": {k: v["closed"] for k, v in
+                                        summary["fleet"]["by_task"].items()},
+                      "one_cell_by_task": {k: v["closed"] for k, v in
+                                           summary["one_cell"]["by_task"].items()}}, indent=1))
     return 0
 
 
