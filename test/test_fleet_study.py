@@ -79,7 +79,7 @@ def test_analysis_groups_by_own_task_and_by_learned_peels_and_judges_each_cell()
 def test_report_and_figure_are_written(tmp_path):
     s = _summary()
     md = fs.summary_markdown(s)
-    assert "| 2 | 0.75 | 0.88 | 0.62 | -0.50 ± 0.50 (1 of 2) |" in md
+    assert "| 2 | 0.75 | 0.88 | 0.62 [0.50, 0.75] | -0.50 ± 0.50 (1 of 2) |" in md
     learned = md.split("| peels the model had learned |")[1].split("\n\n")[0]
     assert [row.split(" | ")[0] for row in learned.splitlines()[2:]] == ["| 0", "| 1", "| 2", "| 3"]
     assert "**not met**" in md
@@ -98,3 +98,12 @@ def test_a_finished_fleet_run_is_reused_and_a_failed_one_is_named(tmp_path, monk
     with pytest.raises(PeelError, match=r"exited 1; its output: .*fleet_s5\.log"):
         fs.run_fleet(3, 2, 5, out)  # three cells asked for: the two-cell run is not reused
     assert "cell /cell_1 died" in (tmp_path / "fleet_s5.log").read_text()
+
+
+def test_the_interval_resamples_substrate_sequences_and_brackets_the_pooled_fraction():
+    rows = [{"seed": 1, "cell": c, "task": 2, "J": j, "J_b1": 10.0, "J_oracle": 8.0}
+            for c, j in (("/cell_0", 9.0), ("/cell_1", 8.0), ("/cell_2", 8.5))]
+    lo, hi = fs.seed_interval(rows)
+    assert 0.5 <= lo <= fs.closed(rows)["closed"] <= hi <= 1.0  # per sequence 0.5, 1.0, 0.75
+    assert fs.seed_interval(rows[:1]) is None  # one sequence: no interval
+    assert fs.seed_interval(rows) == fs.seed_interval(rows)  # seeded

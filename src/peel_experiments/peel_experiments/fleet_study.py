@@ -122,6 +122,21 @@ def by(rows: Sequence[Mapping[str, Any]], key: str) -> dict[str, dict[str, Any]]
     return {str(k): closed(v) for k, v in sorted(groups.items())}
 
 
+def seed_interval(rows: Sequence[Mapping[str, Any]], resamples: int = 10_000,
+                  seed: int = 0) -> list[float] | None:
+    """95 % bootstrap interval of :func:`closed` over the substrate sequences of ``rows`` (a
+    cell of a seed; each sequence's peels drawn together); None with fewer than two."""
+    groups = sorted({(r["seed"], r["cell"]) for r in rows})
+    if len(groups) < 2:
+        return None
+    of = [[r for r in rows if (r["seed"], r["cell"]) == g] for g in groups]
+    gain = np.array([sum(r["J_b1"] - r["J"] for r in g) for g in of])
+    room = np.array([sum(r["J_b1"] - r["J_oracle"] for r in g) for g in of])
+    pick = np.random.default_rng(seed).integers(0, len(groups), (resamples, len(groups)))
+    ratios = gain[pick].sum(axis=1) / room[pick].sum(axis=1)
+    return [float(x) for x in np.percentile(ratios, [2.5, 97.5])]
+
+
 def analyse(fleet_rows: list[dict[str, Any]], alone_rows: list[dict[str, Any]], cells: int,
             tasks: int) -> dict[str, Any]:
     """The study's figures from its rows (module docstring)."""
@@ -136,7 +151,8 @@ def analyse(fleet_rows: list[dict[str, Any]], alone_rows: list[dict[str, Any]], 
     return {
         "one_cell": {"by_task": by(one, "task")},
         "fleet": {"by_task": by(fleet_rows, "task"), "by_learned": by(fleet_rows, "learned")},
-        "alone_same_cells": {"by_task": by(same, "task")},
+        "alone_same_cells": {"by_task": by(same, "task"), "interval_by_task": {
+            str(k): seed_interval([r for r in same if r["task"] == k]) for k in range(1, tasks + 1)}},
         "per_cell": per_cell,
         "target": {"closed": TARGET_CLOSED, "task": TARGET_TASK, "cells": cells,
                    "per_cell_closed": at,
@@ -207,6 +223,10 @@ def _f(x: float | None, fmt: str = ".2f") -> str:
     return "–" if x is None else format(x, fmt)
 
 
+def _interval(x: Sequence[float] | None) -> str:
+    return "" if x is None else f" [{x[0]:.2f}, {x[1]:.2f}]"
+
+
 def summary_markdown(s: Mapping[str, Any]) -> str:
     """The study's report (its figures are all in summary.json)."""
     k, t = s["cells"], s["tasks"]
@@ -216,14 +236,15 @@ def summary_markdown(s: Mapping[str, Any]) -> str:
              f"cell x {k * t} tasks (the same number of peels). Fraction of headroom closed = "
              "sum(J_B1 - J) / sum(J_B1 - J_oracle) over the peels of a row, pooled over seeds "
              "and cells.", "",
-             "| own task | one cell | fleet, every cell | each cell alone (same substrates) | "
+             "| own task | one cell | fleet, every cell | each cell alone (same substrates) [95 %] | "
              "fleet - alone, mean J ± se (fleet better) |", "|---|---|---|---|---|"]
     for task in range(1, t + 1):
         key = str(task)
         d = s["fleet_minus_alone_J"][key]
         lines.append(f"| {task} | {_f(s['one_cell']['by_task'][key]['closed'])} | "
                      f"{_f(s['fleet']['by_task'][key]['closed'])} | "
-                     f"{_f(s['alone_same_cells']['by_task'][key]['closed'])} | "
+                     f"{_f(s['alone_same_cells']['by_task'][key]['closed'])}"
+                     f"{_interval(s['alone_same_cells']['interval_by_task'].get(key))} | "
                      f"{d['mean']:+.2f} ± {_f(d['se'])} ({d['better']} of {d['n']}) |")
     lines += ["", "| peels the model had learned | one cell | fleet |", "|---|---|---|"]
     learned = sorted({int(x) for x in s["fleet"]["by_learned"]}
