@@ -80,22 +80,27 @@ def _publish() -> None:
 
 
 def _wait_until_on_disk(bag, tmp) -> None:
-    """Until the bag's flushed chunks (read from a copy, repaired) hold the trajectory and the
-    last wrench: the recorder's time-based flush has put everything on disk."""
+    """Until the bag's flushed chunks hold the trajectory and the last wrench: the recorder's
+    time-based flush has put everything on disk."""
+    _wait_for(bag, tmp, lambda copy: len(bagread.read_trajectories(copy, repair=True)) == 1
+              and bagread.read_topics(copy, repair=True)["/peel/wrench"]["fx_n"][-1] == N - 1)
+
+
+def _wait_for(bag, tmp, ready) -> None:
+    """Until ``ready(copy)`` holds for a repaired copy of the bag's flushed chunks."""
     deadline = time.monotonic() + 120  # only a hang reaches this
     while time.monotonic() < deadline:
         copy = tmp / f"copy_{time.monotonic_ns()}"
         shutil.copytree(bag, copy)
         try:
-            if (len(bagread.read_trajectories(copy, repair=True)) == 1
-                    and bagread.read_topics(copy, repair=True)["/peel/wrench"]["fx_n"][-1] == N - 1):
+            if ready(copy):
                 return
         except (PeelError, KeyError, ValueError, IndexError):
             pass  # nothing flushed yet
         finally:
             shutil.rmtree(copy)
         time.sleep(0.1)
-    raise AssertionError("the recorder never flushed the last messages")
+    raise AssertionError("the recorder never flushed what the test waits for")
 
 
 def _wrench_x(bag) -> list[float]:
@@ -207,7 +212,7 @@ def test_a_late_recorder_takes_the_current_model_but_no_task_peeled_before_it(tm
         rec = _start_recorder(bag)
         try:
             assert pub.stdout.readline().strip() == "published"
-            _wait_for_trajectories(bag, tmp_path, 1)
+            _wait_for(bag, tmp_path, lambda copy: len(bagread.read_trajectories(copy, repair=True)) >= 1)
         finally:
             rec.send_signal(signal.SIGINT)
             _, err = rec.communicate(timeout=60)
@@ -216,20 +221,3 @@ def test_a_late_recorder_takes_the_current_model_but_no_task_peeled_before_it(tm
         pub.communicate("\n", timeout=60)
     assert [t.meta["task_index"] for t in bagread.read_trajectories(bag)] == [2]
     assert bagread.read_topics(bag)["/peel/model_version"]["version"].tolist() == [3]
-
-
-def _wait_for_trajectories(bag, tmp, n: int) -> None:
-    """Until the bag's flushed chunks (read from a copy, repaired) hold ``n`` trajectories."""
-    deadline = time.monotonic() + 120  # only a hang reaches this
-    while time.monotonic() < deadline:
-        copy = tmp / f"copy_{time.monotonic_ns()}"
-        shutil.copytree(bag, copy)
-        try:
-            if len(bagread.read_trajectories(copy, repair=True)) >= n:
-                return
-        except (PeelError, KeyError, ValueError, IndexError):
-            pass  # nothing flushed yet
-        finally:
-            shutil.rmtree(copy)
-        time.sleep(0.1)
-    raise AssertionError(f"the bag never held {n} trajectories")
