@@ -1,28 +1,67 @@
-"""What the tests that start node processes share: their environment, a small learner update,
-and a bag read back by mcap's own ROS 2 decoder (``mcap-ros2-support``, independent of ours)."""
+"""What the tests that start node processes share: their environment, their parameter override
+files (:func:`override_yaml` and the settings most of them use), a small learner update, and a
+bag read back by mcap's own ROS 2 decoder (``mcap-ros2-support``, independent of ours)."""
 
 from __future__ import annotations
 
 import os
 import re
 import subprocess
+import textwrap
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
+
+import yaml
 
 # The learner's Algorithm 1 cut down to one meta step on a few slices, every update offered
 # unchecked (gate.holdout 0): the tests check the traffic and the swap, not what an update
-# learns (test_model_gate.py checks the gate). Indented to sit under ``ros__parameters:``.
-SMALL_MAML = """\
-    maml:
-      meta_steps: 1
-      support_slices: 4
-      query_slices: 4
-      eval_slices: 4
-      m: 2
-    gate:
-      holdout: 0.0
-"""
+# learns (test_model_gate.py checks the gate).
+SMALL_LEARNER: dict[str, Any] = {
+    "maml": {"meta_steps": 1, "support_slices": 4, "query_slices": 4, "eval_slices": 4, "m": 2},
+    "gate": {"holdout": 0.0},
+}
+# The same as YAML text, indented to sit under ``ros__parameters:``.
+SMALL_MAML = textwrap.indent(yaml.safe_dump(SMALL_LEARNER, sort_keys=False), "    ")
+
+# What every graph test's override holds: a small planner (N = 16 samples over H = 3 steps)
+# and the small learner update above.
+FAST: dict[str, Any] = {
+    "peel_planner_node": {"mppi": {"n_samples": 16, "horizon": 3}},
+    "model_learner_node": SMALL_LEARNER,
+}
+# A graph on a ROS domain of its own (the ``ros_domain`` fixture): a short look for another graph.
+ALONE: dict[str, Any] = {"peel_bringup": {"graph": {"alone_wait_s": 0.5}}}
+# Short simulator tasks, one every 20 s of ROS time.
+SIM_TASKS: dict[str, Any] = {
+    "/**": {"task": {"q_ter_mm": 6.0, "t_max_s": 8.0}},
+    "peel_sim_node": {"node": {"task_slot_s": 20.0, "cmd_timeout_s": 5.0}},
+}
+
+
+def merged(*layers: Mapping[str, Any]) -> dict[str, Any]:
+    """The layers deep-merged left to right: a later value replaces an earlier one, nested
+    dicts merge key by key; the layers themselves are not changed."""
+    out: dict[str, Any] = {}
+    for layer in layers:
+        for key, value in layer.items():
+            if isinstance(value, Mapping):
+                earlier = out.get(key)
+                out[key] = merged(earlier, value) if isinstance(earlier, dict) else merged(value)
+            else:
+                out[key] = str(value) if isinstance(value, os.PathLike) else value
+    return out
+
+
+def override_yaml(*layers: Mapping[str, Mapping[str, Any]]) -> str:
+    """A ROS 2 parameter file's text: node name (or ``/**``) -> its parameters as nested dicts,
+    the layers deep-merged (:func:`merged`), each node's under ``ros__parameters``; paths are
+    written as strings."""
+    nodes = merged(*layers)
+    return yaml.safe_dump({node: {"ros__parameters": params} for node, params in nodes.items()},
+                          sort_keys=False, width=1 << 16)
 
 
 def node_env() -> dict[str, str]:

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from graph_helpers import SMALL_MAML, node_env
+from graph_helpers import FAST, SIM_TASKS, node_env, override_yaml
 
 from model_learner_node.health import LearnerHealth
 from peel_msgs_py import topics
@@ -196,33 +196,14 @@ def _node(tmp: Path, name: str, *args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(cmd, env=node_env(), stdout=log, stderr=subprocess.STDOUT)
 
 
-OVERRIDE = """\
-/**:
-  ros__parameters:
-    use_sim_time: true
-    task:
-      q_ter_mm: 6.0
-      t_max_s: 8.0
-peel_sim_node:
-  ros__parameters:
-    node:
-      tasks: 1
-      seed: 3
-      task_slot_s: 20.0
-      cmd_timeout_s: 5.0
-peel_planner_node:
-  ros__parameters:
-    model:
-      path: {init}
-    mppi:
-      n_samples: 16
-      horizon: 3
-model_learner_node:
-  ros__parameters:
-    node:
-      init_model: {init}
-      out_dir: {out}
-""" + SMALL_MAML
+def _override(init: Path, out: Path) -> str:
+    """The three nodes started on their own (no launcher): one task, seed 3, sim time."""
+    return override_yaml(SIM_TASKS, FAST, {
+        "/**": {"use_sim_time": True},
+        "peel_sim_node": {"node": {"tasks": 1, "seed": 3}},
+        "peel_planner_node": {"model": {"path": init}},
+        "model_learner_node": {"node": {"init_model": init, "out_dir": out}},
+    })
 
 
 def _swap(node: object, path: Path) -> tuple[bool, str]:
@@ -248,8 +229,7 @@ def test_every_node_reports_and_a_refused_model_turns_the_planner_to_warn(
     from test_graph_run import initial_model
 
     init = initial_model(tmp_path)
-    (tmp_path / "override.yaml").write_text(
-        OVERRIDE.format(init=init, out=tmp_path / "models"))
+    (tmp_path / "override.yaml").write_text(_override(init, tmp_path / "models"))
     listener = Listener(ros_domain)
     procs = [_node(tmp_path, n) for n in ("peel_planner_node", "model_learner_node", "peel_sim_node")]
     alive = lambda: all(p.poll() is None for p in procs)  # noqa: E731

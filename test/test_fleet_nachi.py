@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from graph_helpers import SMALL_MAML, node_env
+from graph_helpers import ALONE, FAST, node_env, override_yaml
 
 from peel_bringup import fleet
 from peel_msgs_py.cliargs import run_main
@@ -122,26 +122,11 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(
     assert not out.exists()
 
 
-OVERRIDE = """
-peel_bringup:
-  ros__parameters:
-    graph:
-      alone_wait_s: 0.5   # a domain of its own: a short look for another graph
-peel_planner_node:
-  ros__parameters:
-    mppi:
-      n_samples: 16
-      horizon: 3
-model_learner_node:
-  ros__parameters:
-""" + SMALL_MAML + """\
-    node:
-      cell_wait_s: 60.0
-peel_nachi_bridge:
-  ros__parameters:
-    safety:
-      stall_timeout_s: 1.0   # eight processes on two cores; the 300 ms rule has its own tests
-"""
+OVERRIDE = override_yaml(ALONE, FAST, {
+    "model_learner_node": {"node": {"cell_wait_s": 60.0}},
+    # eight processes on two cores; the 300 ms rule has its own tests
+    "peel_nachi_bridge": {"safety": {"stall_timeout_s": 1.0}},
+})
 
 
 def _emulator(c: int) -> tuple[subprocess.Popen[str], int]:

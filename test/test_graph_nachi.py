@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from graph_helpers import SMALL_MAML, node_env, read_bag_mcap_ros2
+from graph_helpers import ALONE, FAST, node_env, override_yaml, read_bag_mcap_ros2
 
 from peel_bag import bagread
 from peel_msgs_py import topics
@@ -22,24 +22,9 @@ from peel_planner_node.guard import GuardStats
 
 pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/flaky.sh
 
-OVERRIDE = """
-peel_bringup:
-  ros__parameters:
-    graph:
-      alone_wait_s: 0.5   # a domain of its own: a short look for another graph
-peel_planner_node:
-  ros__parameters:
-    mppi:
-      n_samples: 16
-      horizon: 3
-model_learner_node:
-  ros__parameters:
-""" + SMALL_MAML + """\
-peel_nachi_bridge:
-  ros__parameters:
-    safety:
-      stall_timeout_s: 1.0   # six processes on two cores; the 300 ms rule has its own tests
-"""
+# six processes on two cores; the 300 ms rule has its own tests
+BRIDGE = {"peel_nachi_bridge": {"safety": {"stall_timeout_s": 1.0}}}
+OVERRIDE = override_yaml(ALONE, FAST, BRIDGE)
 
 
 def _graph(tmp: Path, *args: str, override: str = OVERRIDE) -> list[str]:
@@ -123,8 +108,8 @@ def test_graph_exits_1_naming_the_bridge_when_no_controller_answers(tmp_path: Pa
     """No controller at the port: the bridge's configure retries with backoff, gives up after
     ``link.configure_timeout_s``; the graph shuts it down, it exits 1, and the graph stops the
     others and exits 1 naming it."""
-    override = OVERRIDE + ("    link:\n      give_up_s: 1.0\n      backoff_max_s: 0.3\n"
-                           "      configure_timeout_s: 1.0\n")
+    override = override_yaml(ALONE, FAST, BRIDGE, {"peel_nachi_bridge": {"link": {
+        "give_up_s": 1.0, "backoff_max_s": 0.3, "configure_timeout_s": 1.0}}})
     cmd = _graph(tmp_path, "--nachi-port", str(_free_port()), "--tasks", "1", override=override)
     out = subprocess.run(cmd, env=node_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 1, out.stdout + out.stderr

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from graph_helpers import Lines, assert_clean_logs, node_env, read_bag_mcap_ros2
+from graph_helpers import ALONE, FAST, SIM_TASKS, Lines, assert_clean_logs, node_env, override_yaml, read_bag_mcap_ros2
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
@@ -28,44 +28,6 @@ pytestmark = pytest.mark.process  # starts processes or real-time I/O: scripts/f
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOT_S = 20.0  # node.task_slot_s in the override: task i starts at ROS time i * SLOT_S
-
-OVERRIDE = f"""
-/**:
-  ros__parameters:
-    task:
-      q_ter_mm: 6.0
-      t_max_s: 8.0
-peel_sim_node:
-  ros__parameters:
-    node:
-      task_slot_s: {SLOT_S}
-      cmd_timeout_s: 5.0
-      wait_model_s: {{wait_model_s}}
-peel_planner_node:
-  ros__parameters:
-    model:
-      path: {{init}}
-    mppi:
-      n_samples: 16
-      horizon: 3
-model_learner_node:
-  ros__parameters:
-    node:
-      init_model: {{init}}
-    maml:
-      meta_steps: {{meta_steps}}
-      support_slices: 4
-      query_slices: 4
-      eval_slices: 4
-      m: 2
-    gate:
-      holdout: 0.0   # every update offered: these tests check the traffic, not the gate
-peel_bringup:
-  ros__parameters:
-    graph:
-      final_model_wait_s: 120.0
-      alone_wait_s: 0.5
-"""
 
 
 def initial_model(tmp: Path) -> Path:
@@ -80,11 +42,19 @@ def initial_model(tmp: Path) -> Path:
     return save_checkpoint(tmp / "init.safetensors", ForcePredictor(ModelConfig()))
 
 
+def _override(init: Path, wait_model_s: float, meta_steps: int = 1) -> str:
+    """Short tasks, small N/H, a small learner update of ``meta_steps`` meta steps."""
+    return override_yaml(SIM_TASKS, FAST, ALONE, {
+        "peel_sim_node": {"node": {"task_slot_s": SLOT_S, "wait_model_s": wait_model_s}},
+        "peel_planner_node": {"model": {"path": init}},
+        "model_learner_node": {"node": {"init_model": init}, "maml": {"meta_steps": meta_steps}},
+        "peel_bringup": {"graph": {"final_model_wait_s": 120.0}},
+    })
+
+
 def write_override(tmp: Path, wait_model_s: float, meta_steps: int = 1) -> Path:
     path = tmp / "override.yaml"
-    path.write_text(OVERRIDE.replace("{wait_model_s}", str(wait_model_s))
-                    .replace("{meta_steps}", str(meta_steps))
-                    .replace("{init}", str(initial_model(tmp))))
+    path.write_text(_override(initial_model(tmp), wait_model_s, meta_steps))
     return path
 
 

@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import matplotlib.image as mpimg
 import pytest
 import torch
-from graph_helpers import SMALL_MAML, node_env
+from graph_helpers import ALONE, FAST, SIM_TASKS, node_env, override_yaml
 
 from peel_experiments.soak import Watch, _markdown, build_report, memory_summary, sample_tree
 
@@ -92,35 +92,12 @@ def test_a_node_with_no_sample_after_the_warmup_is_named_not_judged() -> None:
     assert "| learner | 300.0 | - | 300.0 | 300.0 | - | - | no_sample_after_warmup |" in _markdown(rep)
 
 
-OVERRIDE = """
-/**:
-  ros__parameters:
-    task:
-      q_ter_mm: 6.0
-      t_max_s: 8.0
-peel_sim_node:
-  ros__parameters:
-    node:
-      task_slot_s: 20.0
-      cmd_timeout_s: 5.0
-peel_planner_node:
-  ros__parameters:
-    model:
-      path: {init}
-    mppi:
-      n_samples: 16
-      horizon: 3
-model_learner_node:
-  ros__parameters:
-    node:
-      init_model: {init}
-""" + SMALL_MAML + """\
-peel_bringup:
-  ros__parameters:
-    graph:
-      final_model_wait_s: 120.0
-      alone_wait_s: 0.5   # a domain of its own: a short look for another graph
-"""
+def _override(init: Path) -> str:
+    return override_yaml(SIM_TASKS, FAST, ALONE, {
+        "peel_planner_node": {"model": {"path": init}},
+        "model_learner_node": {"node": {"init_model": init}},
+        "peel_bringup": {"graph": {"final_model_wait_s": 120.0}},
+    })
 
 
 @pytest.mark.slow
@@ -133,7 +110,7 @@ def test_soak_two_peels_reports_every_node(tmp_path: Path, ros_domain: str) -> N
     torch.manual_seed(0)
     init = save_checkpoint(tmp_path / "init.safetensors", ForcePredictor(ModelConfig()))
     override = tmp_path / "override.yaml"
-    override.write_text(OVERRIDE.format(init=init))
+    override.write_text(_override(init))
     out = tmp_path / "soak"
     env = node_env()
     t0 = time.monotonic()

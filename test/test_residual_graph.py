@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from graph_helpers import SMALL_MAML, node_env
+from graph_helpers import ALONE, FAST, SIM_TASKS, node_env, override_yaml
 from residual_helpers import peel
 
 from model_learner_node.synthetic import synthetic_trajectory
@@ -36,35 +36,13 @@ TERMS = [Term(Candidate("near_start_hold", 4.0), "fz", (1.0,)),
          Term(Candidate("decay_in_time", 2.0), "fx", (0.5,)),
          Term(Candidate("actuator_lag"), "v", (0.5,))]
 
-OVERRIDE = """
-/**:
-  ros__parameters:
-    task:
-      q_ter_mm: 5.0
-      t_max_s: 8.0
-peel_sim_node:
-  ros__parameters:
-    node:
-      task_slot_s: 20.0
-      cmd_timeout_s: 5.0
-peel_planner_node:
-  ros__parameters:
-    model:
-      path: {model}
-    mppi:
-      n_samples: 16
-      horizon: 3
-model_learner_node:
-  ros__parameters:
-    node:
-      init_model: {model}
-""" + SMALL_MAML + """\
-peel_bringup:
-  ros__parameters:
-    graph:
-      final_model_wait_s: 120.0
-      alone_wait_s: 0.5   # a domain of its own: a short look for another graph
-"""
+def _override(model: Path) -> str:
+    return override_yaml(SIM_TASKS, FAST, ALONE, {
+        "/**": {"task": {"q_ter_mm": 5.0}},
+        "peel_planner_node": {"model": {"path": model}},
+        "model_learner_node": {"node": {"init_model": model}},
+        "peel_bringup": {"graph": {"final_model_wait_s": 120.0}},
+    })
 
 
 def corrected(tmp: Path, cfg: ModelConfig | None = None) -> Path:
@@ -90,7 +68,7 @@ def test_graph_plans_learns_and_swaps_a_corrected_model_with_an_effect(
         tmp_path: Path, ros_domain: str) -> None:
     model = corrected(tmp_path)
     override = tmp_path / "override.yaml"
-    override.write_text(OVERRIDE.format(model=model))
+    override.write_text(_override(model))
     env = node_env()
     bag = tmp_path / "bag"
     proc = subprocess.run(
