@@ -7,6 +7,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from peel_experiments.bench_safety import summary, wilson
 
 
@@ -62,6 +64,65 @@ def test_bench_safety_prints_every_level_and_arm_as_json() -> None:
     lat = out["latency"]["arms"]
     assert set(lat) == {"peel", "peel_unguarded", "pytorch_mppi"} and out["latency"]["n"] == 50
     assert lat["pytorch_mppi"]["ratio_to_pytorch_mppi"] == 1.0 and lat["peel"]["median_ms"] > 0
+
+
+@pytest.mark.slow
+def test_the_oracle_tells_an_avoidable_stop_from_an_unpeelable_substrate() -> None:
+    """Level 1, drift, seed 8, task 18: the force passes 20 N under the oracle and at every
+    constant speed, so the unguarded planner's stop there is not avoidable; on a simulator
+    substrate the oracle finishes, a stop counts as avoidable."""
+    from peel_experiments.bench_safety import peels_of
+    from peel_experiments.stops import oracle_on_stops
+    from peel_planner_node.config import load_planner_config
+    from peel_sim_node.config import load_sim_config
+
+    res = _bench("--levels", "1", "--sequences", "drift", "--tasks", "18", "--seed", "8",
+                 "--arms", "peel_unguarded", "--latency-repeats", "0", "--oracle-on-stops")
+    assert res.returncode == 0, res.stderr
+    cell = json.loads(res.stdout)["cells"][0]
+    arm = cell["arms"]["peel_unguarded"]
+    assert arm["prewarnings"] >= 1 and arm["prewarnings_avoidable"] == 0
+    [check] = cell["oracle_on_stops"]
+    assert (check["task"], check["out"], check["peelable"]) == (17, "safety_stop", False)
+    assert set(check["constant"]) == {"0.5", "1", "2", "4", "8"}
+    assert set(check["constant"].values()) == {"safety_stop"}
+    base = load_planner_config()
+    env, peels = peels_of("sim", "stationary", 5, 1, load_sim_config())
+    arms = {"a": {"_runs": [{"out": "safety_stop"}]}, "b": {"_runs": [{"out": "done"}]}}
+    try:
+        checked = oracle_on_stops(env, peels, arms, base, 0)
+    finally:
+        env.close()
+    assert [(c["task"], c["out"], c["peelable"]) for c in checked] == [(0, "done", True)]
+    assert (arms["a"]["prewarnings_avoidable"], arms["b"]["prewarnings_avoidable"]) == (1, 0)
+
+
+@pytest.mark.slow
+def test_the_stops_of_an_experiment_are_replayed_on_their_substrates(tmp_path) -> None:
+    """``--experiments``: a ``peel experiment`` folder's peels (Baseline 1: the model that
+    never learns) on the same drifting level-1 substrates; the stop at task 18 is on the
+    substrate that nothing peels, so none of its stops there counts as avoidable."""
+    out = tmp_path / "exp"
+    run = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "experiment", "--plant", "1",
+                          "--sequence", "drift", "--tasks", "18", "--seed", "8", "--methods",
+                          "baseline1", "--no-oracle", "--no-save-model", "--out", str(out)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    res = _bench("--experiments", str(out))
+    assert res.returncode == 0, res.stderr
+    rep = json.loads(res.stdout)
+    [cell] = rep["cells"]
+    assert (cell["level"], cell["sequence"], cell["seeds"]) == ("1", "drift", [8])
+    b1 = cell["methods"]["baseline1"]
+    last = [s for s in b1["stops"] if s["task"] == 18]
+    assert b1["peels"] == 18 and [(s["seed"], s["out"], s["peelable"]) for s in last] == [
+        (8, "safety_stop", False)]
+    assert b1["prewarnings"] == len(b1["stops"]) >= 1
+    assert b1["prewarnings_avoidable"] == sum(s["peelable"] for s in b1["stops"])
+    assert rep["total"]["baseline1"]["prewarnings"] == b1["prewarnings"]
+    bad = _bench("--experiments", str(tmp_path / "nothing"))
+    assert bad.returncode != 0 and "results.json does not exist" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1
 
 
 def test_bench_safety_refuses_bad_arguments() -> None:

@@ -1,5 +1,6 @@
 """What the planner benchmarks share (``peel bench planner``, ``peel bench safety``): the model
-they plan with, the ``--set NAME=VALUE`` planner overrides, and the timing of one call."""
+they plan with, the ``--set NAME=VALUE`` planner overrides, the timing of one call, and the
+intervals they report (a mean's, a rate's)."""
 
 from __future__ import annotations
 
@@ -62,3 +63,21 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
     if out:
         load_planner_config().replace(**out)  # unknown names / bad values fail here, named
     return out
+
+
+def interval(x: list[float]) -> dict[str, float]:
+    """Mean and its 95 % interval, mean +- 1.96 standard errors."""
+    a = np.asarray(x, dtype=float)
+    half = 1.96 * a.std(ddof=1) / np.sqrt(len(a)) if len(a) > 1 else float("nan")
+    return {"mean": round(float(a.mean()), 4), "ci95": [round(float(a.mean() - half), 4),
+                                                        round(float(a.mean() + half), 4)]}
+
+
+def wilson(k: int, n: int) -> list[float]:
+    """95 % Wilson score interval of a rate k / n (z = 1.96); [0, 1] for n = 0."""
+    if n == 0:
+        return [0.0, 1.0]
+    z, p = 1.96, k / n
+    mid = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [round(float(max(0.0, mid - half)), 5), round(float(min(1.0, mid + half)), 5)]

@@ -23,6 +23,15 @@ over the peels. ``latency``: ``plan()`` at (N, H) = (50, 5) of every arm on one 
 history, interleaved calls in the same run (median / p99 wall ms, median CPU ms, each arm's
 median over pytorch_mppi's); ``--latency-repeats 0`` leaves it out. ``--per-peel`` adds each
 peel's outcome, peak, J and T_cpl (to compare arms run separately on the first peels).
+
+``--oracle-on-stops`` asks of every stop whether it could have been avoided
+(:mod:`.stops`): each substrate on which some arm tripped the prewarning is peeled again by
+the oracle (the shipped planner with the plant's true dynamics as its model) and at a few
+constant speeds; the cell then holds ``oracle_on_stops`` (task index, the oracle's outcome and
+peak, each constant speed's outcome, ``peelable``) and every arm ``prewarnings_avoidable``: its
+prewarnings on peelable substrates. ``--experiments DIR ...`` runs no bench peel: it reads the
+peels of ``peel experiment`` output folders (with learning, every method) and reports the same
+counts per folder and method, every stop replayed in the same way, and the totals.
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -43,8 +53,9 @@ from peel_planner_node.cost import Cost, episode_cost_terms
 from peel_planner_node.dynamics import learned_dynamics
 from peel_planner_node.mppi import Planner
 
-from .bench_common import load_model, parse_sets, timing
+from .bench_common import interval, load_model, parse_sets, timing, wilson
 from .planner_studies import peak_force
+from .stops import experiment_cells, oracle_on_stops
 from .torch_mppi import TorchMppiPolicy
 
 ARMS: tuple[str, ...] = ("peel", "peel_unguarded", "pytorch_mppi")
@@ -86,24 +97,6 @@ def run_peel(env: Any, policy: Any, env_seed: int, params: dict | None,
             "out": traj.outcome, "peak": peak_force(traj),
             "reduced": guard.get("commands_reduced", 0), "fallbacks": guard.get("fallbacks", 0),
             "margin_mean": float(np.mean(guard["margin_mean_n"])) if guard else 0.0}
-
-
-def interval(x: list[float]) -> dict[str, float]:
-    """Mean and its 95 % interval, mean +- 1.96 standard errors."""
-    a = np.asarray(x, dtype=float)
-    half = 1.96 * a.std(ddof=1) / np.sqrt(len(a)) if len(a) > 1 else float("nan")
-    return {"mean": round(float(a.mean()), 4), "ci95": [round(float(a.mean() - half), 4),
-                                                        round(float(a.mean() + half), 4)]}
-
-
-def wilson(k: int, n: int) -> list[float]:
-    """95 % Wilson score interval of a rate k / n (z = 1.96); [0, 1] for n = 0."""
-    if n == 0:
-        return [0.0, 1.0]
-    z, p = 1.96, k / n
-    mid = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return [round(float(max(0.0, mid - half)), 5), round(float(min(1.0, mid + half)), 5)]
 
 
 def summary(runs: list[dict[str, Any]], pseeds: list[int], over_n: float) -> dict[str, Any]:
@@ -194,15 +187,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     for env_seed, params in peels:
                         runs.append(run_peel(env, policy, env_seed, params, cost))
                         bar.update(1)
-                arms[arm] = summary(runs, args.planner_seeds, args.over_n)
+                arms[arm] = {**summary(runs, args.planner_seeds, args.over_n), "_runs": runs}
                 if args.per_peel:  # seed-major, task order within each planner seed
                     arms[arm]["per_peel"] = [{"out": r["out"], "peak": round(r["peak"], 3),
                                               "J": round(r["J"], 4), "t": r["t"]}
                                              for r in runs]
+            checked = (oracle_on_stops(env, peels, arms, base, args.planner_seeds[0])
+                       if args.oracle_on_stops else None)
         finally:
             env.close()
-        out.append({"level": level, "sequence": sequence if level != "sim" else None,
-                    "arms": arms})
+        for a in arms.values():
+            del a["_runs"]
+        cell = {"level": level, "sequence": sequence if level != "sim" else None, "arms": arms}
+        out.append(cell if checked is None else {**cell, "oracle_on_stops": checked})
     bar.close()
     lat = (latency(args.arms, pred, base, args.latency_repeats, sim_cfg)
            if args.latency_repeats else None)
@@ -242,6 +239,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="timed plan() calls per arm at (50, 5); 0: no latency (default 50)")
     ap.add_argument("--per-peel", action="store_true",
                     help="also list every peel's outcome, peak, J and T_cpl per arm")
+    ap.add_argument("--oracle-on-stops", action="store_true",
+                    help="peel every substrate an arm stopped on again with the oracle (true "
+                         "dynamics): which prewarnings were avoidable")
+    ap.add_argument("--experiments", nargs="+", metavar="DIR", default=[],
+                    help="instead of bench peels: the peels of these peel experiment --out "
+                         "folders (with learning), every stop replayed as --oracle-on-stops")
     ap.add_argument("--progress", action="store_true", help="tqdm progress bar on stderr")
     args = ap.parse_args(argv)
     args.set = parse_sets(args.set)
@@ -259,7 +262,12 @@ def main(argv: list[str] | None = None) -> int:
         raise PeelError("--planner-seeds must be comma-separated integers") from None
     if not args.planner_seeds or not args.levels or not args.arms:
         raise PeelError("--levels, --arms and --planner-seeds must not be empty")
-    print(json.dumps(run(args), indent=2))
+    if args.experiments:
+        out = {"benchmark": "safety", "mode": "experiments", "over_n": args.over_n,
+               **experiment_cells([Path(d) for d in args.experiments], args.over_n)}
+    else:
+        out = run(args)
+    print(json.dumps(out, indent=2))
     return 0
 
 
