@@ -123,7 +123,10 @@ def method_summary(tasks: list[tuple[int, dict[str, Any]]],
 
 def experiment_cell(folder: Path, over_n: float) -> dict[str, Any]:
     """One ``peel experiment`` folder: per method :func:`method_summary`, every stop's
-    substrate replayed by :func:`peelable` (the oracle with that task's ``mppi.seed``)."""
+    substrate replayed by :func:`peelable` (the oracle with the run's planner parameters and
+    that task's ``mppi.seed``) on the plant of the run's level, sequence and effects, with the
+    simulator's own parameters: results.json does not record ``--sim-params``, so a run made
+    with them is replayed without them."""
     from peel_msgs_py.task import mppi_seed, task_seed
     from peel_sim_node.config import load_sim_config
     from peel_sim_node.effects import load_effects
