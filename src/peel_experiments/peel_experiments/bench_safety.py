@@ -179,6 +179,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for level, sequence in cells:
         env, peels = peels_of(level, sequence, args.seed, args.tasks, sim_cfg)
         arms: dict[str, Any] = {}
+        outcomes: dict[str, list[str]] = {}
         try:
             for arm in args.arms:
                 runs = []
@@ -187,19 +188,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     for env_seed, params in peels:
                         runs.append(run_peel(env, policy, env_seed, params, cost))
                         bar.update(1)
-                arms[arm] = {**summary(runs, args.planner_seeds, args.over_n), "_runs": runs}
+                arms[arm] = summary(runs, args.planner_seeds, args.over_n)
+                outcomes[arm] = [r["out"] for r in runs]
                 if args.per_peel:  # seed-major, task order within each planner seed
                     arms[arm]["per_peel"] = [{"out": r["out"], "peak": round(r["peak"], 3),
                                               "J": round(r["J"], 4), "t": r["t"]}
                                              for r in runs]
-            checked = (oracle_on_stops(env, peels, arms, base, args.planner_seeds[0])
-                       if args.oracle_on_stops else None)
+            if args.oracle_on_stops:
+                checked, avoidable = oracle_on_stops(env, peels, outcomes, base,
+                                                     args.planner_seeds[0])
+                for arm, n in avoidable.items():
+                    arms[arm]["prewarnings_avoidable"] = n
         finally:
             env.close()
-        for a in arms.values():
-            del a["_runs"]
         cell = {"level": level, "sequence": sequence if level != "sim" else None, "arms": arms}
-        out.append(cell if checked is None else {**cell, "oracle_on_stops": checked})
+        out.append({**cell, "oracle_on_stops": checked} if args.oracle_on_stops else cell)
     bar.close()
     lat = (latency(args.arms, pred, base, args.latency_repeats, sim_cfg)
            if args.latency_repeats else None)

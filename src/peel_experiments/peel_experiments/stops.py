@@ -74,20 +74,20 @@ def peelable(env: Any, peel: Peel, cfg: PlannerConfig) -> dict[str, Any]:
             "peelable": out == "done" or "done" in const.values()}
 
 
-def oracle_on_stops(env: Any, peels: list[Peel], arms: dict[str, Any], base: PlannerConfig,
-                    pseed: int) -> list[dict[str, Any]]:
-    """:func:`peelable` on each task index where some arm's peel (any planner seed, the
-    arm's ``_runs``) was a safety stop; adds ``prewarnings_avoidable`` to every arm."""
+def oracle_on_stops(env: Any, peels: list[Peel], outcomes: dict[str, list[str]],
+                    base: PlannerConfig, pseed: int) -> tuple[list[dict[str, Any]], dict[str, int]]:
+    """:func:`peelable` on each task index where some arm's peel (any planner seed: an arm's
+    ``outcomes`` run seed-major over ``peels``) was a safety stop; returns the verdicts and
+    each arm's avoidable prewarnings (its stops on peelable substrates)."""
     k = len(peels)
-    stopped = sorted({i % k for a in arms.values() for i, r in enumerate(a["_runs"])
-                      if r["out"] == "safety_stop"})
+    stopped = sorted({i % k for outs in outcomes.values() for i, o in enumerate(outs)
+                      if o == "safety_stop"})
     cfg = base.replace(**{"mppi.seed": pseed})
     checked = [{"task": i, **peelable(env, peels[i], cfg)} for i in stopped]
     feasible = {c["task"] for c in checked if c["peelable"]}
-    for a in arms.values():
-        a["prewarnings_avoidable"] = sum(r["out"] == "safety_stop" and i % k in feasible
-                                         for i, r in enumerate(a["_runs"]))
-    return checked
+    avoidable = {arm: sum(o == "safety_stop" and i % k in feasible for i, o in enumerate(outs))
+                 for arm, outs in outcomes.items()}
+    return checked, avoidable
 
 
 def read_results(folder: Path) -> dict[str, Any]:
