@@ -3,8 +3,8 @@
 
     .venv/bin/python scripts/residual_study.py --out DIR [--families F,...]
         [--amplitudes 0.5,1,2] [--tasks 10,30] [--draws 20] [--clean 20] [--seed 1]
-        [--source plant|sim] [--level L] [--fresh 5] [--adapt K] [--workers 1]
-        [--no-progress]
+        [--source plant|sim] [--level L] [--fresh 5] [--adapt K] [--open-loop-fit]
+        [--workers 1] [--no-progress]
 
 Clean tasks are recorded once per data seed with the plant's episode generator under
 exploratory command profiles (``peel_sim_node.episode.exploratory_tasks``, as
@@ -66,14 +66,15 @@ def _tasks(source: str, n: int, seed: int, level: int | None) -> tuple[Any, ...]
 
 
 @lru_cache(maxsize=1)
-def _model_and_config(path: str | None) -> tuple[Any, Any]:
+def _model_and_config(path: str | None, open_loop_fit: bool) -> tuple[Any, Any]:
     import torch
 
     from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
     from peel_residual.config import load_residual_config
 
     torch.set_num_threads(1)
-    return load_checkpoint(path or shipped_checkpoint()), load_residual_config()
+    return (load_checkpoint(path or shipped_checkpoint()),
+            load_residual_config(open_loop_fit=open_loop_fit))
 
 
 def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | None
@@ -103,11 +104,11 @@ def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | No
             "epochs_run": metrics["epochs_run"]}
 
 
-def _run(args: tuple[Any, str, int | None, int, str | None]) -> dict[str, Any]:
+def _run(args: tuple[Any, str, int | None, int, str | None, bool]) -> dict[str, Any]:
     from peel_residual.study import run_job
 
-    job, source, level, fresh, model_path = args
-    model, cfg = _model_and_config(model_path)
+    job, source, level, fresh, model_path, open_loop_fit = args
+    model, cfg = _model_and_config(model_path, open_loop_fit)
     return run_job(job, _tasks(source, job.n_tasks, job.data_seed, level),
                    _tasks(source, fresh, FRESH_SEED + job.seed, level), model, cfg)
 
@@ -131,6 +132,8 @@ def main(argv: list[str]) -> int:
                         "(0: the shipped model; else at least 8)")
     p.add_argument("--adapt-lr", type=float_arg(1e-6, 1.0), default=ADAPT_LR,
                    help=f"Adam rate of --adapt's fine-tuning (default {ADAPT_LR:g})")
+    p.add_argument("--open-loop-fit", action="store_true",
+                   help="analyse with the output-error fit (residual.open_loop_fit: true)")
     p.add_argument("--workers", type=positive_int, default=1)
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -155,7 +158,7 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     if args.adapt:
         model = _adapt(args.out, args.adapt, args.adapt_lr, args.source, args.seed, args.level)
         path = str(args.out / "adapted.safetensors")
-    work = [(j, args.source, args.level, args.fresh, path) for j in jobs]
+    work = [(j, args.source, args.level, args.fresh, path, args.open_loop_fit) for j in jobs]
     records: list[dict[str, Any]] = []
     with tqdm(total=len(jobs), desc="residual study", unit="run",
               disable=args.no_progress) as bar, open(args.out / "runs.jsonl", "w") as log:
@@ -177,7 +180,8 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     command = "scripts/residual_study.py " + " ".join(shlex.quote(a) for a in argv)
     (args.out / "study.json").write_text(json.dumps(
         {"command": command, "source": args.source, "level": args.level, "seed": args.seed,
-         "model": model, "summary": summary, "runs": records}, indent=1) + "\n")
+         "model": model, "open_loop_fit": args.open_loop_fit, "summary": summary,
+         "runs": records}, indent=1) + "\n")
     (args.out / "study.md").write_text(markdown(summary, command))
     print(json.dumps(summary, indent=1))
     return 0

@@ -41,6 +41,7 @@ def _run(tmp: Path, bag: Path, *extra: str) -> dict:
         t["index"] for t in rep["holdout"]["fit_tasks"]}
     for e in rep["effects"]:
         assert set(e) >= EFFECT_KEYS
+        assert e["fit"] in ("one_step", "open_loop")
         assert mpimg.imread(out / e["figure"]).ndim == 3
     assert mpimg.imread(out / "rmse.png").ndim == 3
     assert "## Error before and after" in (out / "report.md").read_text()

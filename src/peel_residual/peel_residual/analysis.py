@@ -31,6 +31,7 @@ from peel_msgs_py.errors import PeelError
 from peel_msgs_py.trajectory import Trajectory
 
 from . import evaluate as E
+from . import output_error as OE
 from . import predict as P
 from .config import ResidualConfig
 from .data import Horizons, Steps, horizons, one_step_samples
@@ -43,6 +44,9 @@ from .structure import (
     state_variables,
 )
 from .trace import Column, OpenLoopScore, Problem, Trace, trace
+
+#: The trace group of the output-error fit (:mod:`.output_error`).
+OPEN_LOOP = "force_open_loop"
 
 
 @dataclass
@@ -134,6 +138,34 @@ def _force_trace(model: Any, s: Steps, hz: Horizons, cfg: ResidualConfig,
     tr = trace("force", prob, cols, cfg, rng)
     plot = {"y": y, "rms": rms, "cols": {(c.candidate.key, c.channel): c.X for c in cols}}
     return tr, plot
+
+
+def _open_loop_force_trace(model: Any, hz: Horizons, hz_score: Horizons, cfg: ResidualConfig,
+                           rng: np.random.Generator, dt_s: float, named: set[tuple[str, str]]
+                           ) -> tuple[Trace, dict[str, Any]]:
+    """The output-error fit (:mod:`.output_error`) of what the one-step fit left: both force
+    channels' open-loop residual over the horizons ``hz`` of ``model`` (with the one-step
+    terms) against each candidate's response, rows scaled by their RMS residual; the families
+    the one-step fit named on a channel (``named``) are left out; the open-loop criteria of
+    the selection score the planner's horizons ``hz_score``."""
+    force = [c for c in cfg.candidates if set(c.spec.channels) & set(FORCE_CHANNELS)
+             and not all((c.family, ch) in named for ch in FORCE_CHANNELS)]
+    base, resp = OE.open_loop_responses(model, hz, force, dt_s)
+    keep = OE.row_mask(hz)
+    y = (hz.rows[:, -hz.steps:, 2:4] - base)[keep]
+    rms = np.sqrt(np.mean(y ** 2, axis=0))
+    rms = np.where(rms > 1e-12, rms, 1.0)
+    task = np.broadcast_to(hz.task[:, None], keep.shape)[keep]
+    cols = [Column(c, ch, np.concatenate([J[keep][:, 0, :] / rms[0], J[keep][:, 1, :] / rms[1]]))
+            for (_, ch), (c, J) in resp.items() if (c.family, ch) not in named]
+    plot = {"y": y, "rms": rms, "steps": OE.row_steps(hz, keep),
+            "cols": {(c.candidate.key, c.channel): c.X for c in cols}}
+    n = len(y)
+    weights = {ch: 1.0 / float(rms[i]) ** 2 for i, ch in enumerate(FORCE_CHANNELS)}
+    prob = Problem.build(np.concatenate([y[:, 0] / rms[0], y[:, 1] / rms[1]]),
+                         np.concatenate([task, task]), np.array(["fx"] * n + ["fz"] * n),
+                         cfg.folds, open_loop_scorer(model, hz_score, weights, dt_s))
+    return trace(OPEN_LOOP, prob, cols, cfg, rng), plot
 
 
 def _speed_trace(model: Any, s: Steps, hz: Horizons, cfg: ResidualConfig,
@@ -248,8 +280,16 @@ def analyse(tasks: Sequence[Trajectory], model: Any, cfg: ResidualConfig, *,
         raise PeelError("fewer than 2 fit tasks have samples past the first h - 1")
     # the open-loop criteria of the trace score every second control period of the fit tasks
     hz_fit = horizons(fit_tasks, h, cfg.horizon_steps, 2 * cfg.stride)
-    force, fplot = _force_trace(model, fit, hz_fit, cfg, rng, dt_s)
-    traces, plots = {"force": force}, {"force": fplot}
+    traces: dict[str, Trace] = {}
+    plots: dict[str, Any] = {}
+    traces["force"], plots["force"] = _force_trace(model, fit, hz_fit, cfg, rng, dt_s)
+    if cfg.open_loop_fit:
+        one_step = terms_of(traces)
+        base = corrected_model(model, one_step, dt_s) if one_step else model
+        hz_oe = horizons(fit_tasks, h, cfg.open_loop_fit_steps or cfg.horizon_steps,
+                         cfg.open_loop_fit_stride)
+        traces[OPEN_LOOP], plots[OPEN_LOOP] = _open_loop_force_trace(
+            base, hz_oe, hz_fit, cfg, rng, dt_s, {(t.candidate.family, t.channel) for t in one_step})
     tick(STAGES[0])
     speed, vplot = _speed_trace(model, fit, hz_fit, cfg, rng, dt_s)
     if speed is not None:

@@ -94,7 +94,7 @@ def warn_unconverged(traces: dict[str, Any]) -> list[str]:
     for group, tr in traces.items():
         n = int(tr.lasso.get("unconverged_fits", 0))
         if n:
-            channels = "fx, fz" if group == "force" else group
+            channels = group if group == "v" else "fx, fz"
             lines.append(f"peel residual: warning: {n} lasso fit(s) on channel(s) {channels} "
                          f"did not converge (report.json: selection.{group}.lasso)")
     for line in lines:

@@ -30,6 +30,9 @@ class ResidualConfig:
     bootstrap: int = 200
     min_structure: float = 0.05
     drift_alpha: float = 0.01
+    open_loop_fit: bool = False
+    open_loop_fit_steps: int = 0
+    open_loop_fit_stride: int = 10
     candidates: tuple[Candidate, ...] = ()
 
     @classmethod
@@ -60,6 +63,9 @@ class ResidualConfig:
                    horizon_steps=horizon, stride=p["stride"], min_explained=p["min_explained"],
                    ci_level=p["ci_level"], bootstrap=p["bootstrap"],
                    min_structure=p["min_structure"], drift_alpha=p["drift_alpha"],
+                   open_loop_fit=p["open_loop_fit"],
+                   open_loop_fit_steps=p["open_loop_fit_steps"],
+                   open_loop_fit_stride=p["open_loop_fit_stride"],
                    candidates=tuple(candidates_from_grid(grid)))
 
 

@@ -50,6 +50,14 @@ RESIDUAL_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("residual.drift_alpha", float, 0.01,
               "significance of the per-task residual's slope over the task order (drift across "
               "tasks)", min=1e-6, max=0.5),
+    ParamSpec("residual.open_loop_fit", bool, False,
+              "also fit the candidates to the open-loop residual over the planner's horizon "
+              "(output error), after the one-step fit; more power, more false alarms "
+              "(docs/residual.md)"),
+    ParamSpec("residual.open_loop_fit_steps", int, 0,
+              "model steps of each output-error run; 0 = the planner's horizon", min=0, max=1000),
+    ParamSpec("residual.open_loop_fit_stride", int, 10, "samples between output-error starts",
+              min=1),
     ParamSpec("residual.families", list, list(FAMILY_NAMES), "candidate families"),
     *(ParamSpec(f"residual.{name}", list, list(grid), f"shape parameters of {fam}")
       for name, (fam, grid) in GRIDS.items()),

@@ -21,7 +21,7 @@ from peel_msgs_py.atomic import atomic_write_text
 from peel_msgs_py.trajectory import Trajectory
 
 from . import figures as F
-from .analysis import Result
+from .analysis import OPEN_LOOP, Result
 from .config import ResidualConfig
 from .trace import Finding
 
@@ -40,43 +40,67 @@ def _findings(result: Result) -> list[Finding]:
 
 
 def effect_figures(out: Path, result: Result, dt_s: float) -> dict[tuple[str, str], str]:
-    """One evidence figure per named term; returns ``{(key, channel): file name}``."""
+    """One evidence figure per named term: the residual its fit was made on (one step ahead, or
+    open loop for the output-error fit) against the term's variable, with the term's
+    contribution; returns ``{(key, channel): file name}``."""
     files: dict[tuple[str, str], str] = {}
-    fit = result.plots["fit"]
-    named = _findings(result)
-    force = result.plots["traces"].get("force")
-    for f in named:
-        spec = f.candidate.spec
-        if f.channel in FORCE_CHANNELS:
-            i = FORCE_CHANNELS.index(f.channel)
-            n = len(fit)
-
-            def own(key: tuple[str, str], i: int = i, n: int = n) -> np.ndarray:
-                return force["cols"][key][i * n:(i + 1) * n] * force["rms"][i]
-
-            y, s = force["y"][:, i], fit
-            others = [g for g in named if g.channel in FORCE_CHANNELS and g is not f]
-            partial = y - sum((own((g.candidate.key, g.channel)) @ g.coef for g in others),
-                              np.zeros_like(y))
-            contrib = own((f.candidate.key, f.channel)) @ f.coef
-        else:
-            vp = result.plots["traces"][VELOCITY_CHANNEL]
-            s = fit.subset(vp["ok"])
-            others = [g for g in named if g.channel == VELOCITY_CHANNEL and g is not f]
-            partial = vp["y"] - sum((vp["cols"][(g.candidate.key, g.channel)] @ g.coef
-                                     for g in others), np.zeros_like(vp["y"]))
-            contrib = vp["cols"][(f.candidate.key, f.channel)] @ f.coef
-        x = F.variable_values(spec.variable, s, f.channel, dt_s)
-        name = f"effect_{f.channel}_{F.safe_name(f.candidate.key)}.png"
-        F.effect_figure(out / name, f"{spec.label} on {f.channel}: {_expression(f)} "
-                        f"(held-out share {f.explained_variance:.1%} one step)",
-                        F.xlabel(spec.variable), F.UNITS[f.channel], x, partial, contrib)
-        files[(f.candidate.key, f.channel)] = name
+    for group, tr in result.traces.items():
+        plot = result.plots["traces"].get(group)
+        for f in tr.findings:
+            if plot is None:
+                continue
+            partial, contrib, s = _evidence(result, group, plot, tr.findings, f)
+            spec = f.candidate.spec
+            mode = "open loop" if group == OPEN_LOOP else "one step"
+            name = f"effect_{f.channel}_{F.safe_name(f.candidate.key)}.png"
+            F.effect_figure(out / name, f"{spec.label} on {f.channel}: {_expression(f)} "
+                            f"(fitted {mode}; held-out share {f.share:.1%})",
+                            F.xlabel(spec.variable), F.UNITS[f.channel],
+                            F.variable_values(spec.variable, s, f.channel, dt_s), partial,
+                            contrib)
+            files[(f.candidate.key, f.channel)] = name
     return files
+
+
+def _evidence(result: Result, group: str, plot: dict[str, Any], findings: list[Finding],
+              f: Finding) -> tuple[np.ndarray, np.ndarray, Any]:
+    """(the partial residual -- the residual less the group's other terms --, the term's
+    contribution, the rows' samples) of finding ``f`` of trace ``group``."""
+    others = [g for g in findings if g is not f]
+    if f.channel in FORCE_CHANNELS:
+        i = FORCE_CHANNELS.index(f.channel)
+        s = plot["steps"] if group == OPEN_LOOP else result.plots["fit"]
+        n = len(s)
+
+        def own(key: tuple[str, str]) -> np.ndarray:
+            return plot["cols"][key][i * n:(i + 1) * n] * plot["rms"][i]
+
+        y = plot["y"][:, i]
+        partial = y - sum((own((g.candidate.key, g.channel)) @ g.coef for g in others),
+                          np.zeros_like(y))
+        return partial, own((f.candidate.key, f.channel)) @ f.coef, s
+    s = result.plots["fit"].subset(plot["ok"])
+    partial = plot["y"] - sum((plot["cols"][(g.candidate.key, g.channel)] @ g.coef
+                               for g in others), np.zeros_like(plot["y"]))
+    return partial, plot["cols"][(f.candidate.key, f.channel)] @ f.coef, s
 
 
 def _expression(f: Finding) -> str:
     return Term(f.candidate, f.channel, tuple(float(c) for c in f.coef)).expression
+
+
+def _effect_json(f: Finding, group: str, shares: dict[tuple[str, str], Any],
+                 figures: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
+    """One named term of ``effects`` (module docstring); ``fit`` says where it was fitted."""
+    d = f.to_json()
+    d["fit"] = "open_loop" if group == OPEN_LOOP else "one_step"
+    d["expression"] = _expression(f)
+    d["heldout_share_of_mse_removed"] = {k: shares.get((f.candidate.key, f.channel), {})
+                                         .get(k) for k in ("one_step", "open_loop")}
+    d["figure"] = figures["effects"].get((f.candidate.key, f.channel))
+    if f.candidate.family == "actuator_lag" and 0 < f.coef[0] < 1:
+        d["time_constant_s"] = -info["dt_s"] / math.log(f.coef[0])
+    return d
 
 
 def build_json(result: Result, tasks: list[Trajectory], cfg: ResidualConfig,
@@ -84,15 +108,9 @@ def build_json(result: Result, tasks: list[Trajectory], cfg: ResidualConfig,
     """The report as a JSON-able dict (module docstring)."""
     shares = {(d["key"], d["channel"]): d for d in result.shares}
     effects = []
-    for f in _findings(result):
-        d = f.to_json()
-        d["expression"] = _expression(f)
-        d["heldout_share_of_mse_removed"] = {k: shares.get((f.candidate.key, f.channel), {})
-                                             .get(k) for k in ("one_step", "open_loop")}
-        d["figure"] = figures["effects"].get((f.candidate.key, f.channel))
-        if f.candidate.family == "actuator_lag" and 0 < f.coef[0] < 1:
-            d["time_constant_s"] = -info["dt_s"] / math.log(f.coef[0])
-        effects.append(d)
+    for group, tr in result.traces.items():
+        for f in tr.findings:
+            effects.append(_effect_json(f, group, shares, figures, info))
     unexplained = []
     for st in result.structure:
         d = st.to_json()
@@ -126,7 +144,9 @@ def build_json(result: Result, tasks: list[Trajectory], cfg: ResidualConfig,
                      "horizon_steps": cfg.horizon_steps, "stride": cfg.stride,
                      "min_explained": cfg.min_explained, "ci_level": cfg.ci_level,
                      "bootstrap": cfg.bootstrap, "min_structure": cfg.min_structure,
-                     "drift_alpha": cfg.drift_alpha,
+                     "drift_alpha": cfg.drift_alpha, "open_loop_fit": cfg.open_loop_fit,
+                     "open_loop_fit_steps": cfg.open_loop_fit_steps or cfg.horizon_steps,
+                     "open_loop_fit_stride": cfg.open_loop_fit_stride,
                      "candidates": [c.key for c in cfg.candidates]},
         "figures": {"rmse": figures["rmse"], "open_loop_error": figures["horizon"]},
     }
@@ -199,15 +219,17 @@ def _md_effects(rep: dict[str, Any]) -> list[str]:
                      f"{d['key']} on {d['channel']} {d['explained_variance']:.1%}" for d in best)
                  + ".")
     else:
-        L += ["| effect | channel | term | coefficients ± SE | held-out share one step | "
-              "open loop | figure |", "|---|---|---|---|---|---|---|"]
+        L += ["| effect | channel | fitted | term | coefficients ± SE | held-out share one step | "
+              "open loop | figure |", "|---|---|---|---|---|---|---|---|"]
         for e in rep["effects"]:
             co = ", ".join(f"{c:.4g} ± {s:.2g}" for c, s in
                            zip(e["coefficients"], e["coefficient_std"], strict=True))
             ol = e.get("explained_variance_open_loop")
             tc = (f" (time constant {e['time_constant_s']:.3f} s)"
                   if "time_constant_s" in e else "")
-            L.append(f"| {e['label']} (`{e['key']}`) | {e['channel']} | `{e['expression']}`{tc} "
+            fit = e["fit"].replace("_", " ")
+            L.append(f"| {e['label']} (`{e['key']}`) | {e['channel']} | {fit} "
+                     f"| `{e['expression']}`{tc} "
                      f"| {co} | {e['explained_variance']:.1%} | "
                      f"{'–' if ol is None else f'{ol:.1%}'} | [png]({e['figure']}) |")
         L += ["", "Meaning of each: " + "; ".join(
