@@ -7,7 +7,9 @@
    whose history reaches before the task start (padded, :mod:`peel_model.windows`) are
    left out of the fit: their input is the padding convention, not a measurement.
 3. **Trace** each channel (:mod:`.trace`): force channels against the candidates' one-step
-   responses, the speed channel (v_{k+1} - u_k) against the velocity candidates.
+   responses, then -- with ``residual.open_loop_fit`` -- what the one-step terms leave of the
+   open-loop residual against the candidates' open-loop responses (:mod:`.output_error`); the
+   speed channel (v_{k+1} - u_k) against the velocity candidates.
 4. **Held-out decision** (:mod:`.decide`): a term that makes the held-out open-loop error worse
    is dropped; **add** the rest: :class:`~peel_model.compensated.CompensatedPredictor`.
 5. **Remains** (:mod:`.structure`): one-step structure on the fit tasks, a drift across tasks
