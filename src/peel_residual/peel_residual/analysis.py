@@ -130,8 +130,7 @@ def _force_trace(model: Any, s: Steps, hz: Horizons, cfg: ResidualConfig,
     rms = np.sqrt(np.mean(y ** 2, axis=0))
     rms = np.where(rms > 1e-12, rms, 1.0)
     ys = np.concatenate([y[:, 0] / rms[0], y[:, 1] / rms[1]])
-    cols = [Column(c, ch, np.concatenate([J[:, 0, :] / rms[0], J[:, 1, :] / rms[1]]))
-            for (_, ch), (c, J) in resp.items()]
+    cols = [_stacked(c, ch, J, rms) for (_, ch), (c, J) in resp.items()]
     n = len(s)
     weights = {ch: 1.0 / float(rms[i]) ** 2 for i, ch in enumerate(FORCE_CHANNELS)}
     prob = Problem.build(ys, np.concatenate([s.task, s.task]),
@@ -140,6 +139,12 @@ def _force_trace(model: Any, s: Steps, hz: Horizons, cfg: ResidualConfig,
     tr = trace("force", prob, cols, cfg, rng)
     plot = {"y": y, "rms": rms, "cols": {(c.candidate.key, c.channel): c.X for c in cols}}
     return tr, plot
+
+
+def _stacked(cand: Any, ch: str, J: np.ndarray, rms: np.ndarray) -> Column:
+    """A candidate's column from its responses ``J [rows, 2 (output), n_basis]``: the F_RX
+    rows over F_RX's RMS residual above the F_RZ rows over F_RZ's."""
+    return Column(cand, ch, np.concatenate([J[:, 0, :] / rms[0], J[:, 1, :] / rms[1]]))
 
 
 def _open_loop_force_trace(model: Any, hz: Horizons, hz_score: Horizons, cfg: ResidualConfig,
@@ -158,8 +163,8 @@ def _open_loop_force_trace(model: Any, hz: Horizons, hz_score: Horizons, cfg: Re
     rms = np.sqrt(np.mean(y ** 2, axis=0))
     rms = np.where(rms > 1e-12, rms, 1.0)
     task = np.broadcast_to(hz.task[:, None], keep.shape)[keep]
-    cols = [Column(c, ch, np.concatenate([J[keep][:, 0, :] / rms[0], J[keep][:, 1, :] / rms[1]]))
-            for (_, ch), (c, J) in resp.items() if (c.family, ch) not in named]
+    cols = [_stacked(c, ch, J[keep], rms) for (_, ch), (c, J) in resp.items()
+            if (c.family, ch) not in named]
     plot = {"y": y, "rms": rms, "steps": OE.row_steps(hz, keep),
             "cols": {(c.candidate.key, c.channel): c.X for c in cols}}
     n = len(y)
