@@ -81,3 +81,29 @@ def test_cli_writes_the_report_and_refuses_a_missing_arm(tmp_path: Path) -> None
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert len(proc.stderr.strip().splitlines()) == 1 and "baseline2" in proc.stderr
+
+
+def test_against_the_baselines_task_by_task() -> None:
+    """Three seeds, 15 tasks, Baseline 1 at 20 and Baseline 2 at 15: the fast arm 1-2-3 above
+    Baseline 2 at task 1 (the interval above 0), 2 below it from task 2 on; ol-mppi at 30 on
+    one seed's task 4 (one peel over Baseline 1, not beyond noise over seeds) and 25 at task 5
+    on every seed (beyond noise)."""
+    n = 15
+    runs = {}
+    for i, s in enumerate(("910", "911", "912")):
+        fast = [16.0 + i] + [13.0] * (n - 1)
+        ol = [15.0] * n
+        ol[4] = 25.0
+        if i == 0:
+            ol[3] = 30.0
+        costs = {"baseline1": [20.0] * n, "oracle": [12.0] * n, "baseline2": [15.0] * n,
+                 "ol-mppi-fast": fast, "ol-mppi": ol}
+        runs[s] = {m: {"tasks": [_task(c, m == "ol-mppi-fast") for c in cs]} for m, cs in costs.items()}
+    a = summarize({"runs": runs, "plant": {"name": "level 3"}, "sequence": "batch-switch"},
+                  [1, 2])["against_baselines"]
+    fast, ol = a["ol-mppi-fast"], a["ol-mppi"]
+    assert fast["minus_b2"][0]["mean"] == pytest.approx(2.0)
+    assert fast["tasks_b2_upper_end_above_0"] == [1] and fast["tasks_above_b1_beyond_noise"] == []
+    assert fast["minus_b2_tasks_11_15"]["mean"] == pytest.approx(-2.0)
+    assert ol["tasks_b2_upper_end_above_0"] == [4, 5] and ol["tasks_above_b1_beyond_noise"] == [5]
+    assert ol["max_above_b1"] == {"seed": "910", "task": 4, "j_minus_b1": 10.0, "relative": 0.5}

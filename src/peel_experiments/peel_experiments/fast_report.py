@@ -7,8 +7,14 @@ Per arm, the fraction of headroom closed at single tasks (window 0 of
 t-interval of the per-seed values); for ``ol-mppi-fast`` the one-step force error (Eq. 39, both
 channels) of the model in use over task 1's second half against the pretrained model's on the
 same samples (per seed and the ratio of the means), the fast steps' and updates' times, and a
-PNG of task 1's error per sample. Writes ``fast_report.json``, ``fast_report.md`` and
-``fast_task1_error.png`` to ``--out``; prints the JSON.
+PNG of task 1's error per sample. Per OL-MPPI arm against the baselines, task by task (the same
+substrate in every arm): J_arm - J_B2 and J_arm - J_B1, mean and 95 % t-interval over seeds;
+"not shown no worse than Baseline 2" at a task is an upper end above 0 (the target asks for <=
+0), "above Baseline 1 beyond noise" a lower end above 0; the largest single peel over
+Baseline 1; and J_arm - J_B2 over tasks 11-15, the five peels after the batch switch
+(docs/experiments.md, "Plant levels"). Writes
+``fast_report.json``, ``fast_report.md`` and ``fast_task1_error.png`` to ``--out``; prints the
+JSON.
 """
 
 from __future__ import annotations
@@ -30,6 +36,10 @@ from .fast_arm import FAST
 from .grid import ci95, closed_fraction
 
 ARMS = (FAST, "ol-mppi", "baseline2")
+#: the OL-MPPI arms compared with the baselines task by task
+OL_ARMS = (FAST, "ol-mppi")
+#: the tasks after the batch switch (the new pad batch arrives at task 11)
+AFTER_SWITCH = (11, 15)
 
 
 def _fast_records(runs: Mapping[str, Any], task: int) -> list[dict[str, Any]]:
@@ -70,6 +80,39 @@ def timing(runs: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _paired(runs: Mapping[str, Any], arm: str, base: str, n: int) -> np.ndarray:
+    """(seeds, n) array of J_arm - J_base, task by task."""
+    return np.array([[runs[s][arm]["tasks"][k]["cost"] - runs[s][base]["tasks"][k]["cost"]
+                      for k in range(n)] for s in runs], dtype=float)
+
+
+def against_baselines(runs: Mapping[str, Any], arm: str, n: int) -> dict[str, Any]:
+    """Task by task, ``arm`` against Baseline 2 and Baseline 1 (module docstring)."""
+    d2, d1 = _paired(runs, arm, "baseline2", n), _paired(runs, arm, "baseline1", n)
+    b1 = np.array([[runs[s]["baseline1"]["tasks"][k]["cost"] for k in range(n)] for s in runs])
+    per2 = [ci95(d2[:, k]) for k in range(n)]
+    per1 = [ci95(d1[:, k]) for k in range(n)]
+
+    def upper_above_0(per: list[dict[str, Any]]) -> list[int]:
+        return [k + 1 for k, c in enumerate(per) if c["ci95"] is not None and c["mean"] + c["ci95"] > 0]
+
+    def lower_above_0(per: list[dict[str, Any]]) -> list[int]:
+        return [k + 1 for k, c in enumerate(per) if c["ci95"] is not None and c["mean"] - c["ci95"] > 0]
+
+    worst = np.unravel_index(int(np.argmax(d1)), d1.shape)
+    out: dict[str, Any] = {
+        "minus_b2": per2, "minus_b1": per1,
+        "tasks_b2_upper_end_above_0": upper_above_0(per2),
+        "tasks_above_b1_beyond_noise": lower_above_0(per1),
+        "max_above_b1": {"seed": list(runs)[worst[0]], "task": int(worst[1]) + 1,
+                         "j_minus_b1": float(d1[worst]), "relative": float(d1[worst] / b1[worst])},
+    }
+    lo, hi = AFTER_SWITCH
+    if n >= hi:
+        out["minus_b2_tasks_11_15"] = ci95(d2[:, lo - 1:hi].mean(axis=1))
+    return out
+
+
 def summarize(results: Mapping[str, Any], tasks: Sequence[int]) -> dict[str, Any]:
     runs = results["runs"]
     seed0 = next(iter(runs))
@@ -83,7 +126,8 @@ def summarize(results: Mapping[str, Any], tasks: Sequence[int]) -> dict[str, Any
              for m in runs[seed0]}
     return {"seeds": list(runs), "tasks": n, "plant": results.get("plant", {}).get("name"),
             "sequence": results.get("sequence"), "command": results.get("command"),
-            "closed": closed, "within_task1": within_task(runs), "timing": timing(runs),
+            "closed": closed, "against_baselines": {m: against_baselines(runs, m, n) for m in OL_ARMS},
+            "within_task1": within_task(runs), "timing": timing(runs),
             "safety_stops": stops}
 
 
@@ -141,7 +185,30 @@ def markdown(s: Mapping[str, Any]) -> str:
               f"ol-mppi {t['ol-mppi_update_s_mean']:.2f} s, baseline 2 "
               f"{t['baseline2_update_s_mean']:.2f} s. Safety stops: {s['safety_stops']}.", "",
               "![task 1 error](fast_task1_error.png)", ""]
-    return "\n".join(lines)
+    return "\n".join(lines + _against_markdown(s["against_baselines"]))
+
+
+def _against_markdown(against: Mapping[str, Any]) -> list[str]:
+    arms = list(against)
+    n = len(against[arms[0]]["minus_b2"])
+    lines = ["J of each OL-MPPI arm minus Baseline 2's and Baseline 1's on the same substrate "
+             "(mean ± 95 % t-interval over seeds):", "",
+             "| task | " + " | ".join(f"{m} - B2 | {m} - B1" for m in arms) + " |",
+             "|---|" + "---|---|" * len(arms)]
+    for k in range(n):
+        lines.append(f"| {k + 1} | " + " | ".join(
+            f"{_fmt(against[m]['minus_b2'][k])} | {_fmt(against[m]['minus_b1'][k])}" for m in arms) + " |")
+    lines.append("")
+    for m in arms:
+        a, w = against[m], against[m]["max_above_b1"]
+        after = a.get("minus_b2_tasks_11_15")
+        lines.append(f"- {m}: interval against Baseline 2 with its upper end above 0 at tasks "
+                     f"{a['tasks_b2_upper_end_above_0'] or 'none'}; "
+                     f"above Baseline 1 beyond noise (lower end > 0) at tasks "
+                     f"{a['tasks_above_b1_beyond_noise'] or 'none'}; largest single peel over Baseline 1: "
+                     f"{w['j_minus_b1']:+.2f} ({w['relative']:+.0%}), seed {w['seed']} task {w['task']}"
+                     + (f"; tasks 11-15 against Baseline 2: {_fmt(after)}" if after else "") + ".")
+    return [*lines, ""]
 
 
 def read_results(path: Path) -> dict[str, Any]:
