@@ -193,5 +193,10 @@ def test_grid_runs_cells_and_writes_one_report(setup: dict[str, Path]) -> None:
     assert "Cells not run: L0_drift" in md and "| 3 | drift | ol-mppi |" in md
     for png in ("headroom.png", "fig11_levels.png"):
         assert mpimg.imread(out / png).shape[2] in (3, 4)
-    bad = _peel("experiment", "grid", "--levels", "7", *common)
-    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    proc = _peel("experiment", "grid", "--levels", "3", "--sequences", "drift", "--report-only",
+                 "--methods", "ol-mppi-fast,ol-mppi,baseline1,baseline2", *common)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((out / "summary.json").read_text())["missing"] == ["L3_drift"]  # other arms
+    for wrong in (["--levels", "7"], ["--methods", "ol-mppi,magic"]):
+        bad = _peel("experiment", "grid", *wrong, *common)
+        assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr

@@ -242,6 +242,8 @@ def grid_parser() -> ArgumentParser:
                    help="seeds (at least 3 for confidence intervals), e.g. 100,101,102")
     p.add_argument("--checkpoint", help="pretrained model (default: the shipped checkpoint)")
     p.add_argument("--learner-params", help="override file for config/model_learner_node.yaml")
+    p.add_argument("--methods", help="comma-separated arms beside the oracle (default "
+                   "ol-mppi,baseline1,baseline2; ol-mppi-fast adds the fast step)")
     p.add_argument("--report-only", action="store_true",
                    help="run nothing: write the report from the cells already in --out")
     _common(p)
@@ -263,8 +265,11 @@ def _grid(argv: list[str], command: str) -> int:
                  if x.strip())
     for sq in seqs:
         check_sequence(sq)
-    changes: dict[str, Any] = {"seeds": args.seeds, "oracle": True,
-                               "methods": ("ol-mppi", "baseline1", "baseline2"),
+    methods = ("ol-mppi", "baseline1", "baseline2")
+    if args.methods is not None:
+        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+        check_methods(methods)
+    changes: dict[str, Any] = {"seeds": args.seeds, "oracle": True, "methods": methods,
                                "save_model": False}
     if args.tasks is not None:
         changes["tasks"] = args.tasks

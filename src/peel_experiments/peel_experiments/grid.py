@@ -142,12 +142,16 @@ def cell_summary(results: Mapping[str, Any], window: int = 2) -> dict[str, Any]:
     return out
 
 
-def _same_settings(path: Path, want: Mapping[str, Any]) -> bool:
+def _same_settings(path: Path, want: Mapping[str, Any], level: int,
+                   methods: Sequence[str]) -> bool:
+    """Whether the cell's results.json was made with these settings, level and arms."""
     try:
         old = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
-    return all(old.get(k) == v for k, v in want.items())
+    return (all(old.get(k) == v for k, v in want.items())
+            and old.get("plant", {}).get("level") == level
+            and list(old.get("config", {}).get("methods", ())) == list(methods))
 
 
 def run_grid(cfg: ExperimentConfig, *, levels: Sequence[int], sequences: Sequence[str],
@@ -171,8 +175,7 @@ def run_grid(cfg: ExperimentConfig, *, levels: Sequence[int], sequences: Sequenc
             want = {"tasks": ccfg.tasks, "seeds": list(ccfg.seeds), "checkpoint": str(checkpoint),
                     "sequence": seq}
             res_path = cdir / "results.json"
-            if res_path.is_file() and _same_settings(res_path, want) and json.loads(
-                    res_path.read_text())["plant"]["level"] == level:
+            if _same_settings(res_path, want, level, ccfg.methods):
                 results = json.loads(res_path.read_text())
             elif report_only:
                 missing.append(name)
