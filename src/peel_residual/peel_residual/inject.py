@@ -93,26 +93,39 @@ class Injection:
 
     def _shape(self, tr: Trajectory, i: int, n: int, f_ref: float) -> np.ndarray:
         """s(x) on every sample of task ``i`` of ``n`` (module docstring)."""
-        p, v, q, t = self.shape, tr.v, tr.q, tr.t
-        dv = np.concatenate([[0.0], np.diff(v)])
+        dv = np.concatenate([[0.0], np.diff(tr.v)])
         other = tr.fz if self.channel == "fx" else tr.fx
-        shapes = {
-            "sensor_offset": lambda: np.ones_like(v),
-            "viscous_drag": lambda: v / V_REF_MMPS,
-            "quadratic_drag": lambda: v * np.abs(v) / V_REF_MMPS ** 2,
-            "coulomb_friction": lambda: np.tanh(v / p.get("v0_mmps", 1.0)),
-            "stribeck_friction": lambda: np.exp(-(v / p.get("vs_mmps", 1.0)) ** 2),
-            "periodic_adhesion": lambda: np.sin(2 * math.pi * q / p.get("lambda_mm", 1.0)
-                                                + p.get("phase_rad", 0.0)),
-            "near_start_hold": lambda: np.exp(-np.clip(q, 0, None) / p.get("length_mm", 1.0)),
-            "position_trend": lambda: q / Q_REF_MM,
-            "decay_in_time": lambda: np.exp(-t / p.get("tau_s", 1.0)),
-            "drift_in_time": lambda: t / T_REF_S,
-            "hysteresis": lambda: np.tanh(dv / p.get("dv0_mmps", 1.0)),
-            "cross_talk": lambda: other / max(f_ref, 1e-9),
-            TASK_OFFSET: lambda: np.full_like(v, i - (n - 1) / 2),
-        }
-        return shapes[self.family]()
+        return shape_of(self.family, self.shape, v=tr.v, q=tr.q, t=tr.t, dv=dv,
+                        other=other / max(f_ref, 1e-9), task=i - (n - 1) / 2)
+
+
+def shape_of(family: str, p: dict[str, float], *, v: np.ndarray, q: np.ndarray, t: np.ndarray,
+             dv: np.ndarray | None = None, other: np.ndarray | None = None,
+             task: float = 0.0) -> np.ndarray:
+    """The shape s(x) of ``family`` with shape parameters ``p`` (module docstring) at speeds
+    ``v`` (mm/s), positions ``q`` (mm) and times ``t`` (s); ``dv`` is the change of speed from
+    the previous sample, ``other`` the other channel's force over its mean magnitude and
+    ``task`` the task's place from the middle of the sequence (the families that need them)."""
+    v, q, t = (np.asarray(x, dtype=float) for x in (v, q, t))
+    shapes = {
+        "sensor_offset": lambda: np.ones_like(v),
+        "viscous_drag": lambda: v / V_REF_MMPS,
+        "quadratic_drag": lambda: v * np.abs(v) / V_REF_MMPS ** 2,
+        "coulomb_friction": lambda: np.tanh(v / p.get("v0_mmps", 1.0)),
+        "stribeck_friction": lambda: np.exp(-(v / p.get("vs_mmps", 1.0)) ** 2),
+        "periodic_adhesion": lambda: np.sin(2 * math.pi * q / p.get("lambda_mm", 1.0)
+                                            + p.get("phase_rad", 0.0)),
+        "near_start_hold": lambda: np.exp(-np.clip(q, 0, None) / p.get("length_mm", 1.0)),
+        "position_trend": lambda: q / Q_REF_MM,
+        "decay_in_time": lambda: np.exp(-t / p.get("tau_s", 1.0)),
+        "drift_in_time": lambda: t / T_REF_S,
+        "hysteresis": lambda: np.tanh(np.asarray(dv, dtype=float) / p.get("dv0_mmps", 1.0)),
+        "cross_talk": lambda: np.asarray(other, dtype=float),
+        TASK_OFFSET: lambda: np.full_like(v, task),
+    }
+    if family not in shapes:
+        raise ValueError(f"unknown study family {family!r} (known: {', '.join(shapes)})")
+    return shapes[family]()
 
 
 def draw(family: str, amplitude_n: float, rng: np.random.Generator) -> Injection:
