@@ -197,9 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.tasks is not None:
         changes["tasks"] = args.tasks
     if args.methods is not None:
-        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-        check_methods(methods)
-        changes["methods"] = methods
+        changes["methods"] = _methods(args.methods)
     if args.seed is not None:
         if args.seed < 0:
             raise PeelError(f"parameter 'seed' must be >= 0, got {args.seed}")
@@ -250,6 +248,13 @@ def grid_parser() -> ArgumentParser:
     return p
 
 
+def _methods(text: str) -> tuple[str, ...]:
+    """The arms of a comma-separated ``--methods``, each checked (one-line error otherwise)."""
+    methods = tuple(m.strip() for m in text.split(",") if m.strip())
+    check_methods(methods)
+    return methods
+
+
 def _grid(argv: list[str], command: str) -> int:
     from peel_sim_node.plant import LEVELS, SEQUENCES, check_level, check_sequence
 
@@ -265,10 +270,7 @@ def _grid(argv: list[str], command: str) -> int:
                  if x.strip())
     for sq in seqs:
         check_sequence(sq)
-    methods = ("ol-mppi", "baseline1", "baseline2")
-    if args.methods is not None:
-        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-        check_methods(methods)
+    methods = ("ol-mppi", "baseline1", "baseline2") if args.methods is None else _methods(args.methods)
     changes: dict[str, Any] = {"seeds": args.seeds, "oracle": True, "methods": methods,
                                "save_model": False}
     if args.tasks is not None:
