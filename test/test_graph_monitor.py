@@ -95,3 +95,35 @@ def test_the_run_ends_only_once_a_swap_is_in_the_planners_record_too() -> None:
     assert last_update_in(updates, 1)
     updates.add_report(UpdateReport("model_learner_node", 2, REFUSED, "worse on held-out"))
     assert last_update_in(updates, 2)  # nothing for the planner to record
+
+
+def test_a_monitor_matched_after_several_swaps_still_gets_every_record(ros_domain: str) -> None:
+    """Discovery may match the launcher's reader with a planner's writer late (seconds on a
+    loaded machine): the records of the swaps made before it must still reach it, in order, or
+    the launcher waits for an update the planner made long ago. Here the reader only exists once
+    five records are written; a writer that kept only its current record hands it v4 alone."""
+    import time
+
+    import rclpy
+
+    from peel_msgs_py import topics
+
+    rclpy.init()
+    planner = rclpy.create_node("peel_planner_node")
+    pub = planner.create_publisher(String, topics.MODEL_INFO, topics.qos_profile(topics.MODEL_INFO))
+    records = [ModelRecord(v, f"{v:02x}" * 32, f"/m{v}.safetensors", "model_learner_node", v or None)
+               for v in range(5)]
+    for rec in records:
+        pub.publish(String(data=rec.to_json()))
+    mon = GraphMonitor("model_learner_node")
+    try:
+        deadline = time.monotonic() + 30.0
+        while len(mon.updates.records) < len(records) and time.monotonic() < deadline:
+            rclpy.spin_once(mon, timeout_sec=0.1)
+            rclpy.spin_once(planner, timeout_sec=0.0)
+        assert mon.updates.records == records
+        assert all(mon.updates.outcome(k) is not None for k in range(1, 5))
+    finally:
+        mon.destroy_node()
+        planner.destroy_node()
+        rclpy.try_shutdown()

@@ -2,7 +2,7 @@
 (the order and the names without ROS: :mod:`model_learner_node.cells`).
 
 Each cell is a namespace (``/cell_0``) holding a plant bridge and a planner. For every cell the
-learner subscribes the cell's ``peel/trajectory`` and its planner's latched ``peel/model_info``,
+learner subscribes the cell's ``peel/trajectory`` and its planner's transient-local ``peel/model_info``,
 publishes on the cell's ``peel/model_update`` and calls the planner's standard
 ``<cell>/peel_planner_node/set_parameters`` service (``model.path``), the same swap as one
 cell's (docs/graph.md, "The model swap"). The node's worker takes its trajectories from

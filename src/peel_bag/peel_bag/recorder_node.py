@@ -1,19 +1,20 @@
 """The recorder node: the /peel topics and /clock into an MCAP bag, as received.
 
 Each topic of the table (:mod:`peel_msgs_py.topics`) gets an rclpy *raw* subscription (the
-profile its publishers offer; ``/clock`` best effort, latched topics transient local so their
-current value is recorded), so every message is stored as the CDR bytes that arrived, with its
-receive time (``received_timestamp`` of the message info, ns since the epoch), as ``ros2 bag
-record`` does without ``--use-sim-time``. A topic's channel is registered once its publishers
-are known (a timer polls the graph, a first message forces it): the bag holds the QoS profiles
-they offer and the type hash (RIHS01) they announce, both from their endpoint info; the schema
-text is the Jazzy definition from ``rosbags``' typestore. Chunks are flushed by size and by
-age (:class:`~peel_bag.bag.BagWriter`); the same timer ticks the writer so that a quiet
-topic's open chunk still reaches the disk within ``flush_interval_s``. A write that fails (a full
-disk) stops the recording: :func:`record` raises the writer's
-:class:`~peel_bag.bag.BagWriteError` (bag named, repair command included). With a ``cell``
-(a namespace, docs/fleet.md) it records that cell's topics (``/cell_0/peel/wrench``, ...) under
-the table's names (``/peel/wrench``): each cell's bag has the one-cell layout.
+profile its publishers offer; ``/clock`` best effort, the model topics transient local so a late
+recorder still records the current version and the planner's recent model records), so every
+message is stored as the CDR bytes that arrived, with its receive time (``received_timestamp``
+of the message info, ns since the epoch), as ``ros2 bag record`` does without
+``--use-sim-time``. A topic's channel is registered once its publishers are known (a timer polls
+the graph, a first message forces it): the bag holds the QoS profiles they offer and the type
+hash (RIHS01) they announce, both from their endpoint info; the schema text is the Jazzy
+definition from ``rosbags``' typestore. Chunks are flushed by size and by age
+(:class:`~peel_bag.bag.BagWriter`); the same timer ticks the writer so that a quiet topic's open
+chunk still reaches the disk within ``flush_interval_s``. A write that fails (a full disk) stops
+the recording: :func:`record` raises the writer's :class:`~peel_bag.bag.BagWriteError` (bag
+named, repair command included). With a ``cell`` (a namespace, docs/fleet.md) it records that
+cell's topics (``/cell_0/peel/wrench``, ...) under the table's names (``/peel/wrench``): each
+cell's bag has the one-cell layout.
 
 ``/peel/trajectory`` is the exception to "the profile its publishers offer": its publishers keep
 their last 10 tasks for a learner that comes back (transient local, docs/interfaces.md), but those

@@ -20,8 +20,8 @@ the wrong model. Here the planner is the only allocator:
 
 How the nodes use it (ROS-free here; the nodes are thin adapters): the planner keeps a ledger,
 ``accept``\\ s a model after :func:`~peel_model.validation.check_finite_outputs` passed,
-publishes ``record.version`` on ``/peel/model_version`` and ``record.to_json()`` on the latched
-``/peel/model_info``; the learner writes ``update_meta(node, task)`` into each checkpoint's meta;
+publishes ``record.version`` on ``/peel/model_version`` and ``record.to_json()`` on the
+transient-local ``/peel/model_info``; the learner writes ``update_meta(node, task)`` into each checkpoint's meta;
 the simulator and ``peel graph`` wait for a record with ``is_update(producer, task)``
 (:class:`peel_msgs_py.modelinfo.UpdateWait`).
 """

@@ -3,7 +3,7 @@ carried by ``/peel/model_info`` and ``/peel/model_update`` (std_msgs/msg/String;
 in :mod:`peel_msgs_py.topics`, docs/interfaces.md), and the wait for the learner's update after
 task k, by identity (docs/graph.md, "The model swap"). No ROS here.
 
-* :class:`ModelRecord` (``/peel/model_info``, latched, published by the planner on every
+* :class:`ModelRecord` (``/peel/model_info``, transient local, published by the planner on every
   accepted model): the version the planner allocated (0 = starting model, +1 per accepted swap,
   never taken from a file name; :class:`peel_model.versions.ModelLedger`) and the
   model's identity: SHA-256 of its safetensors file, path, and for an update of Algorithm 1 the

@@ -75,6 +75,10 @@ STREAM_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, VOLATILE)
 TRAJECTORY_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, TRANSIENT_LOCAL)
 #: Latched state: the current value reaches subscribers that join later.
 LATCHED_QOS = QosSpec(KEEP_LAST, 1, RELIABLE, TRANSIENT_LOCAL)
+#: The planner's record of each model it swapped in: each must arrive, and a reader that
+#: discovery matched late still gets the last 16, newest last (a keep-last-1 writer hands such a
+#: reader only the current record, and the swaps before it are lost to it).
+RECORD_QOS = QosSpec(KEEP_LAST, 16, RELIABLE, TRANSIENT_LOCAL)
 #: The learner's per-task reports: each must arrive, a late reader gets the recent ones.
 REPORT_QOS = QosSpec(KEEP_LAST, 10, RELIABLE, TRANSIENT_LOCAL)
 #: ``/clock`` as published (reliable: matches reliable and best-effort subscribers).

@@ -16,9 +16,12 @@ Choices (docs/interfaces.md gives the reasons at length):
   reliable publisher still matches best-effort subscribers (``SensorDataQoS`` tools);
 * ``/peel/trajectory`` is RELIABLE, KEEP_LAST 10: one message per task, each must reach the
   learner and the recorder;
-* latched state (``/peel/model_version``, ``/peel/model_info``) is RELIABLE, KEEP_LAST 1,
-  TRANSIENT_LOCAL so a late joiner (and the recorder) gets the current value, as ``/tf_static``
-  does;
+* latched state (``/peel/model_version``) is RELIABLE, KEEP_LAST 1, TRANSIENT_LOCAL so a late
+  joiner (and the recorder) gets the current value, as ``/tf_static`` does;
+* the planner's model records (``/peel/model_info``, one per swap) are RELIABLE, KEEP_LAST 16,
+  TRANSIENT_LOCAL: every record must reach the launcher, the bridge and the learner, which wait
+  for the record of an update before they go on, and a reader that discovery matched late
+  still gets the last 16 in order, the current one last;
 * ``/peel/model_update`` (one report per task from the learner) is RELIABLE, KEEP_LAST 10,
   TRANSIENT_LOCAL: a reader matched late (Fast DDS took up to 3 s to match a new process here,
   longer than a short run) still gets the last 10 reports instead of waiting for one forever;
@@ -39,6 +42,7 @@ from .qos import (
     CLOCK_QOS,
     CLOCK_SUB_QOS,
     LATCHED_QOS,
+    RECORD_QOS,
     REPORT_QOS,
     STREAM_QOS,
     TRAJECTORY_QOS,
@@ -63,10 +67,10 @@ class TopicSpec:
     def sub_qos(self) -> QosSpec:
         """Profile a subscriber (the recorder) uses: the offered one, best effort for /clock.
 
-        Latched topics (``/peel/model_version``, ``/peel/model_info``) are read with a deeper
-        history (transient local, depth 16) so that two swaps in quick succession both reach
-        the subscriber (and the bag), while a late joiner still receives only the current value
-        that the publisher keeps.
+        The latched ``/peel/model_version`` is read with a deeper history (transient local,
+        depth 16) so that two swaps in quick succession both reach a subscriber matched in
+        time (and the bag), while a late joiner receives only the current value that the
+        publisher keeps; ``/peel/model_info``'s publisher keeps its last 16 records itself.
         """
         if self.name == CLOCK:
             return CLOCK_SUB_QOS
@@ -134,7 +138,7 @@ _TABLE: tuple[TopicSpec, ...] = (
         "accepted model swap, never taken from a file name (identity: /peel/model_info)", "-",
     ),
     TopicSpec(
-        MODEL_INFO, "std_msgs/msg/String", None, LATCHED_QOS, "peel_planner_node",
+        MODEL_INFO, "std_msgs/msg/String", None, RECORD_QOS, "peel_planner_node",
         "the model behind each version, JSON: version, sha256 (of its safetensors), path, "
         "producer and task (the learner's update after task k; null for any other model); "
         "published with every /peel/model_version (layout in peel_msgs_py.modelinfo)", "-",
