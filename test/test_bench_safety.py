@@ -120,6 +120,9 @@ def test_the_stops_of_an_experiment_are_replayed_on_their_substrates(tmp_path: P
         (8, "safety_stop", False)]
     assert b1["prewarnings"] == len(b1["stops"]) >= 1
     assert b1["prewarnings_avoidable"] == sum(s["peelable"] for s in b1["stops"])
+    # Baseline 1 never swaps its model, and no other method peeled these substrates
+    assert all(s["model_version"] == 0 and s["others"] == {} and s["peak_n"] >= 20.0
+               for s in b1["stops"]), b1["stops"]
     assert rep["total"]["baseline1"]["prewarnings"] == b1["prewarnings"]
     bad = _bench("--experiments", str(tmp_path / "nothing"))
     assert bad.returncode != 0 and "results.json does not exist" in bad.stderr
@@ -145,3 +148,21 @@ def test_experiment_trajectory_meta_carries_the_planner_guard() -> None:
     assert set(guard) == {"plans", "commands_reduced", "reduced_max_mmps", "fallbacks",
                           "all_samples_unsafe", "margin_last_n", "margin_mean_n",
                           "margin_max_n"}
+
+
+def test_a_stop_names_its_model_and_how_the_other_methods_peeled_that_substrate() -> None:
+    from peel_experiments.stops import others, stop_record
+
+    def rec(task: int, outcome: str, fx: float, version: int) -> dict[str, object]:
+        return {"task": task, "outcome": outcome, "max_abs_fx": fx, "max_abs_fz": 9.0,
+                "t_cpl": 3.4, "model_version": version,
+                "planner_guard": {"fallbacks": 2, "margin_max_n": [2.1, 1.1]}}
+
+    res = {"runs": {"7": {"ol-mppi": {"tasks": [rec(1, "done", 15.0, 0), rec(2, "safety_stop", 20.4, 1)]},
+                          "baseline1": {"tasks": [rec(1, "done", 14.0, 0), rec(2, "done", 17.5, 0)]}}}}
+    same = others(res, 7, 2)
+    assert {m: r["max_abs_fx"] for m, r in same.items()} == {"ol-mppi": 20.4, "baseline1": 17.5}
+    got = stop_record(same["ol-mppi"], {m: r for m, r in same.items() if m != "ol-mppi"})
+    assert got == {"model_version": 1, "t_stop_s": 3.4, "peak_n": 20.4, "fallbacks": 2,
+                   "margin_max_n": [2.1, 1.1],
+                   "others": {"baseline1": {"outcome": "done", "peak_n": 17.5}}}

@@ -106,15 +106,36 @@ def read_results(folder: Path) -> dict[str, Any]:
     return res
 
 
+def peak(rec: dict[str, Any]) -> float:
+    """The larger of a peel's two force peaks |F_RX|, |F_RZ| (N)."""
+    return max(rec["max_abs_fx"], rec["max_abs_fz"])
+
+
+def stop_record(rec: dict[str, Any], others: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """What a stopped peel was: the model version it started on, when it stopped, its peak and
+    the guard's counts, and how every other method's peel of the same substrate ended."""
+    guard = rec.get("planner_guard") or {}
+    return {"model_version": rec.get("model_version"), "t_stop_s": rec["t_cpl"],
+            "peak_n": round(peak(rec), 3), "fallbacks": guard.get("fallbacks"),
+            "margin_max_n": guard.get("margin_max_n"),
+            "others": {m: {"outcome": r["outcome"], "peak_n": round(peak(r), 3)}
+                       for m, r in sorted(others.items())}}
+
+
 def method_summary(tasks: list[tuple[int, dict[str, Any]]],
-                   checked: dict[tuple[int, int], dict[str, Any]], over_n: float) -> dict[str, Any]:
+                   checked: dict[tuple[int, int], dict[str, Any]], over_n: float,
+                   same: dict[tuple[int, int], dict[str, dict[str, Any]]] | None = None
+                   ) -> dict[str, Any]:
     """Counts and intervals of one method's peels ``(seed, task record)`` with the
-    :func:`peelable` verdict of each stop ``checked[(seed, task)]``."""
-    stops = [(s, r["task"]) for s, r in tasks if r["outcome"] == "safety_stop"]
-    peaks = [max(r["max_abs_fx"], r["max_abs_fz"]) for _, r in tasks]
+    :func:`peelable` verdict of each stop ``checked[(seed, task)]``; ``same[(seed, task)]``
+    holds the other methods' records of that substrate (:func:`stop_record`)."""
+    stops = [(s, r) for s, r in tasks if r["outcome"] == "safety_stop"]
+    peaks = [peak(r) for _, r in tasks]
     return {"peels": len(tasks), "prewarnings": len(stops),
-            "prewarnings_avoidable": sum(checked[st]["peelable"] for st in stops),
-            "stops": [{"seed": s, "task": t, **checked[(s, t)]} for s, t in stops],
+            "prewarnings_avoidable": sum(checked[(s, r["task"])]["peelable"] for s, r in stops),
+            "stops": [{"seed": s, "task": r["task"], **checked[(s, r["task"])],
+                       **stop_record(r, (same or {}).get((s, r["task"]), {}))}
+                      for s, r in stops],
             "over_18n": int(sum(p >= over_n for p in peaks)),
             "J": interval([r["cost"] for _, r in tasks]),
             "t_cpl_s": interval([r["t_cpl"] for _, r in tasks]),
@@ -153,11 +174,20 @@ def experiment_cell(folder: Path, over_n: float) -> dict[str, Any]:
                     checked[(s, r["task"])] = peelable(
                         env, (task_seed(s, k), r["substrate"]),
                         cfg.replace(**{"mppi.seed": mppi_seed(s, k)}))
-            methods[method] = method_summary(tasks, checked, over_n)
+            same = {(s, r["task"]): {m: o for m, o in others(res, s, r["task"]).items()
+                                     if m != method}
+                    for s, r in tasks if r["outcome"] == "safety_stop"}
+            methods[method] = method_summary(tasks, checked, over_n, same)
     finally:
         env.close()
     return {"level": str(level), "sequence": sequence, "folder": str(folder),
             "seeds": sorted(int(s) for s in res["runs"]), "methods": methods}
+
+
+def others(res: dict[str, Any], seed: int | str, task: int) -> dict[str, dict[str, Any]]:
+    """Every method's record of task ``task`` in seed ``seed``'s run (the same substrate)."""
+    run = res["runs"][str(seed)]
+    return {m: r for m, v in run.items() for r in v["tasks"] if r["task"] == task}
 
 
 def experiment_cells(folders: list[Path], over_n: float) -> dict[str, Any]:
