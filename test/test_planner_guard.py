@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from peel_msgs_py.errors import ParameterError
 from peel_msgs_py.task import Sample
 from peel_msgs_py.trajectory import Trajectory
 from peel_planner_node.config import (
@@ -28,6 +29,7 @@ from peel_planner_node.guard import (
     fallback_speed,
     first_period_forces,
     largest_safe,
+    slowdown_speed,
 )
 from peel_planner_node.mppi import Planner
 
@@ -281,3 +283,59 @@ def test_margin_widens_back_once_the_model_is_right() -> None:
     assert margins[:2] == [0.5, 0.5] and margins[2:5] == pytest.approx([2.0] * 3)
     assert margins[8] == pytest.approx(0.0) and margins[9] == pytest.approx(0.0)
     assert all(b <= a + 1e-9 for a, b in itertools.pairwise(margins[4:]))
+
+
+# ---------------------------------------------------------------- Eq. M5
+def test_slowdown_scales_the_command_by_the_measured_peak() -> None:
+    """Eq. M5: s = (20 - F_hat) / (20 - 17) clipped to [0, 1]; the command is at most
+    s u_prev and never below u_min; below start_n nothing changes."""
+    assert slowdown_speed(4.0, 6.0, 16.9, 0.5, 20.0, 17.0) == 4.0
+    assert slowdown_speed(4.0, 6.0, 18.5, 0.5, 20.0, 17.0) == pytest.approx(3.0)  # s = 0.5
+    assert slowdown_speed(2.0, 6.0, 18.5, 0.5, 20.0, 17.0) == 2.0  # already below s u_prev
+    assert slowdown_speed(4.0, 6.0, 19.9, 0.5, 20.0, 17.0) == 0.5  # s u_prev = 0.2 < u_min
+    assert slowdown_speed(4.0, None, 18.5, 0.5, 20.0, 17.0) == pytest.approx(2.0)  # s u_out
+    assert slowdown_speed(4.0, 6.0, 25.0, 0.5, 20.0, 17.0) == 0.5
+
+
+def test_slowdown_starts_below_the_prewarning_and_ships_off() -> None:
+    """The shipped planner has Eq. M5 off; a start at or above f_prewarn is refused by name."""
+    assert not load_planner_config().safety.slowdown.enabled
+    assert not PlannerConfig().safety.slowdown.enabled
+    with pytest.raises(ParameterError, match=r"safety\.slowdown\.start_n"):
+        config(**{"safety.slowdown.start_n": 20.0})
+
+
+def _history(fx_last_period: list[float], u: float) -> Trajectory:
+    """One control period at speed ``u`` whose measured F_RX samples are ``fx_last_period``."""
+    rows = [[0.0, 0.0, 0.0, u, 4.0, 3.0, np.nan]]
+    for k, fx in enumerate(fx_last_period, start=1):
+        rows.append([k * DT, k * DT * u, u, u, fx, 3.0, np.nan])
+    return Trajectory.from_array(np.asarray(rows))
+
+
+def test_slowdown_lowers_the_command_after_a_measured_peak_and_says_so() -> None:
+    """After a period at 4 mm/s that measured 18.5 N (s = 0.5) the command is at most 2 mm/s,
+    U is capped there, the guard counts it and the control loop's line names it; the same
+    planner without Eq. M5, or after a period under start_n, sends the MPPI command."""
+    on = config(**{"safety.slowdown.enabled": True, "mppi.seed": 3})
+    quiet, peak = _history([10.0, 11.0, 12.0, 12.5, 13.0], 4.0), _history(
+        [10.0, 11.0, 18.5, 12.5, 13.0], 4.0)
+    planner = Planner(PlantModel(), None, on)
+    plain = Planner(PlantModel(), None, config(**{"mppi.seed": 3}))
+
+    def first(p: Planner, history: Trajectory) -> float:
+        p.reset()
+        p._u_prev = 4.0  # the command in force over the period of ``history``
+        return p.plan(history)
+
+    u_plain, u = first(plain, peak), first(planner, peak)
+    assert u_plain > 2.0 and u == pytest.approx(2.0)
+    assert planner.last["slowed"] and float(planner.U.max()) <= 2.0 + 1e-9
+    assert planner.guard.as_dict()["commands_slowed"] == 1
+    assert first(planner, quiet) == first(plain, quiet)
+    assert planner.guard.as_dict()["commands_slowed"] == 0
+    loop = ControlLoop(on, PlantModel(), seed=0)
+    notes = [loop.on_sample(Sample(k * 100_000_000, 0, 0.4 * k, 4.0, fx, 3.0))
+             for k, fx in enumerate([4.0, 10.0, 11.0, 18.5, 12.0, 12.0, 12.0])]
+    slowed = [a.note for a in notes if a is not None and a.note and "slowdown" in a.note]
+    assert slowed and "measured |F| >= 17 N" in slowed[0]

@@ -18,7 +18,7 @@ Sections:
   ``native_loop``): speed only, never the algorithm;
 * ``safety.*``: the end-of-task conditions (section 4.2) and the guard of the force limit
   under model error (``safety.margin.*``, ``safety.null_sample``, ``safety.check.*``,
-  ``safety.fallback``; docs/planner.md, Eq. M1-M4).
+  ``safety.fallback``, ``safety.slowdown.*``; docs/planner.md, Eq. M1-M5).
 
 Time base (docs/CONTRACT.md, section 4.2): the forward model steps ``dt_s`` = 0.1 s; one MPPI
 horizon step holds the sampled velocity ``v_t = u_t + eps_t`` for ``steps_per_horizon_step``
@@ -137,6 +137,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               "command when even u_min is predicted over the tightened limit (Eq. M4): the "
               "candidate of least predicted force, or u_min; both keep the blade moving",
               choices=("least_force", "u_min")),
+    ParamSpec("safety.slowdown.enabled", bool, False,
+              "scale the command down by the measured force peak of the last control period "
+              "(Eq. M5); false: the measured force does not limit the command"),
+    ParamSpec("safety.slowdown.start_n", float, 17.0,
+              "measured peak max_a |F_a| from which Eq. M5 scales the command, N; below "
+              "safety.f_prewarn_n", min=0.0, max=100.0),
 )
 
 
@@ -248,10 +254,11 @@ class DynamicsConfig:
     fused: FusedConfig = FusedConfig()
 
 
-#: The guard of the force limit (Eq. M1-M4) switched off (the planner without it) and on with
+#: The guard of the force limit (Eq. M1-M5) switched off (the planner without it) and on with
 #: the shipped values (config/peel_planner_node.yaml), as ``PlannerConfig.replace`` overrides.
 UNGUARDED: dict[str, Any] = {"safety.margin.enabled": False, "safety.margin.init_n": 0.0,
-                             "safety.null_sample": False, "safety.check.enabled": False}
+                             "safety.null_sample": False, "safety.check.enabled": False,
+                             "safety.slowdown.enabled": False}
 GUARDED: dict[str, Any] = {"safety.margin.enabled": True, "safety.margin.delta": 0.2,
                            "safety.margin.init_n": 0.5, "safety.null_sample": True,
                            "safety.check.enabled": True, "safety.fallback": "least_force"}
@@ -278,6 +285,14 @@ class CheckConfig:
 
 
 @dataclass(frozen=True)
+class SlowdownConfig:
+    """The command scaled down by the measured force peak (docs/planner.md, Eq. M5)."""
+
+    enabled: bool = False
+    start_n: float = 17.0
+
+
+@dataclass(frozen=True)
 class SafetyConfig:
     """End-of-task conditions (section 4.2) and the guard of the force limit (Eq. M1-M4)."""
 
@@ -286,6 +301,7 @@ class SafetyConfig:
     q_ter_mm: float = 25.0
     margin: MarginConfig = MarginConfig()
     check: CheckConfig = CheckConfig()
+    slowdown: SlowdownConfig = SlowdownConfig()
     null_sample: bool = True
     fallback: str = "least_force"
 
@@ -336,6 +352,9 @@ def _check_relations(p: dict[str, Any]) -> None:
         raise ParameterError("parameter 'mppi.sigma_min' must not exceed 'mppi.sigma_max'")
     if p["task.q_ter_mm"] <= p["task.q0_mm"]:
         raise ParameterError("parameter 'task.q_ter_mm' must exceed 'task.q0_mm'")
+    if p["safety.slowdown.start_n"] >= p["safety.f_prewarn_n"]:
+        raise ParameterError("parameter 'safety.slowdown.start_n' must be below "
+                             "'safety.f_prewarn_n'")
     if p["cost.barrier.start_n"] >= p["safety.f_prewarn_n"]:
         raise ParameterError("parameter 'cost.barrier.start_n' must be below "
                              "'safety.f_prewarn_n'")

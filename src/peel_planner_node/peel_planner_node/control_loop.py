@@ -11,12 +11,13 @@ run one OL-MPPI cycle at every control instant (docs/graph.md, "Time and lockste
   20 N prewarning and t_max (:class:`~peel_planner_node.safety.SafetyMonitor`), answered at
   once with a zero command. A re-sent sample (same stamp) gets the answer already computed.
 
-The guard of the force limit (:mod:`~peel_planner_node.guard`, Eq. M1-M4) is the planner's; the
+The guard of the force limit (:mod:`~peel_planner_node.guard`, Eq. M1-M5) is the planner's; the
 loop keeps what a node reports of it as plain fields: ``margin_n`` (the larger axis margin in
 use at the last plan, N), ``margins_n`` (RX, RZ) and ``guard`` (the task's
 :meth:`~peel_planner_node.guard.GuardStats.as_dict`), and :meth:`ControlLoop.safety_report` is
 its JSON for ``/peel/planner_safety`` (what the plant bridges put into the trajectory's meta); a
-fallback is a line of its own, and the line that ends a task carries the task's guard summary.
+fallback and a slowdown (Eq. M5) are each a line of their own, and the line that ends a task
+carries the task's guard summary.
 """
 
 from __future__ import annotations
@@ -157,6 +158,10 @@ class ControlLoop:
         self.margins_n = (float(last["margin"][0]), float(last["margin"][1]))
         self.margin_n = max(self.margins_n)
         self.guard = self.planner.guard.as_dict()
+        if last.get("slowed"):
+            slow = (f"task {self.task + 1}: slowdown at t={float(history.t[-1]):.1f} s: measured "
+                    f"|F| >= {self.cfg.safety.slowdown.start_n:g} N; sent {last['u_out']:.2f} mm/s")
+            note = slow if note is None else f"{note}; {slow}"
         if not last.get("fallback"):
             return note
         line = (f"task {self.task + 1}: guard fallback at t={float(history.t[-1]):.1f} s: "
@@ -171,5 +176,6 @@ def guard_line(g: dict[str, Any]) -> str:
     if not g:
         return "guard: no plan"
     return (f"guard: {g['commands_reduced']} of {g['plans']} commands reduced (at most "
-            f"{g['reduced_max_mmps']:.2f} mm/s), {g['fallbacks']} fallbacks, margin max "
+            f"{g['reduced_max_mmps']:.2f} mm/s), {g['fallbacks']} fallbacks, "
+            f"{g.get('commands_slowed', 0)} slowed by the measured force, margin max "
             f"({g['margin_max_n'][0]:.2f}, {g['margin_max_n'][1]:.2f}) N")

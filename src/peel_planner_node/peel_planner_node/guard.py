@@ -29,9 +29,18 @@ by sample (the 1-5 model steps of the control period the command was in force).
   ``least_force`` sends c_f, f = argmin_j g_j (the candidate with the lowest predicted peak,
   the slowest among equals), ``u_min`` sends c_0. Both are >= u_min > 0: the blade never stops,
   so q reaches q_ter within (q_ter - q_0) / u_min (50 s for 25 mm at 0.5 mm/s) < t_max.
+* Eq. M5, the slowdown on the measured force (``safety.slowdown.*``): the model's error is a
+  quantile over many samples, and a stick-slip sawtooth that climbs peel after peel reaches
+  the limit between two of them. With F_hat = max_{t, a} |F_a,t| over the samples measured in
+  the control period that just ended and u_prev the command that was in force::
+
+      s = clip((f_prewarn - F_hat) / (f_prewarn - f_s), 0, 1)
+      u_out = max(u_min, min(u_out, s u_prev))      when F_hat >= f_s
+
+  (nav2 collision_monitor's slowdown zone, with force for distance). It reads no model.
 
 :class:`ForceMargin` is Eq. M1, :func:`check_candidates` / :func:`largest_safe` Eq. M3,
-:func:`fallback_speed` Eq. M4, :func:`first_period_forces` the prediction for the issued
+:func:`fallback_speed` Eq. M4, :func:`slowdown_speed` Eq. M5, :func:`first_period_forces` the prediction for the issued
 command (from the batch's first control period, which depends only on v_0), :class:`GuardStats`
 what the trajectory's meta and the log report. Everything here is plain torch / numpy.
 """
@@ -129,6 +138,18 @@ def fallback_speed(c: np.ndarray, g: np.ndarray, mode: str) -> float:
     return float(c[int(np.argmin(g))])
 
 
+def slowdown_speed(u_out: float, u_prev: float | None, f_hat: float, u_min: float,
+                   f_prewarn: float, start_n: float) -> float:
+    """Eq. M5: ``u_out`` capped at s u_prev (never below u_min) when the measured peak
+    ``f_hat`` >= ``start_n``, s = (f_prewarn - f_hat) / (f_prewarn - start_n) in [0, 1];
+    without a previous command the cap is s u_out."""
+    if not f_hat >= start_n:
+        return float(u_out)
+    s = min(1.0, max(0.0, (f_prewarn - f_hat) / (f_prewarn - start_n)))
+    ref = float(u_out if u_prev is None else u_prev)
+    return float(max(u_min, min(u_out, s * ref)))
+
+
 def first_period_forces(v0: np.ndarray, forces: np.ndarray, u: float) -> np.ndarray | None:
     """The predicted |F| [k, 2] of the first control period for speed ``u``, interpolated in
     v_0 between the batch's rollouts (their first period depends on v_0 only): ``v0`` [R],
@@ -155,12 +176,15 @@ class GuardStats:
     reduced_max_mmps: float = 0.0
     fallbacks: int = 0
     unsafe_plans: int = 0
+    slowed: int = 0
     margins: list[list[float]] = field(default_factory=list)
 
     def record(self, margin: np.ndarray, u_star: float, u_out: float, fallback: bool,
-               all_unsafe: bool) -> None:
-        """One plan: the margin in use, the MPPI command u* and the command that went out."""
+               all_unsafe: bool, slowed: bool = False) -> None:
+        """One plan: the margin in use, the MPPI command u*, the command that went out and
+        whether Eq. M5 lowered it."""
         self.plans += 1
+        self.slowed += int(slowed)
         self.margins.append([float(margin[0]), float(margin[1])])
         self.fallbacks += int(fallback)
         self.unsafe_plans += int(all_unsafe)
@@ -174,6 +198,7 @@ class GuardStats:
         return {"plans": self.plans, "commands_reduced": self.reduced,
                 "reduced_max_mmps": round(self.reduced_max_mmps, 4),
                 "fallbacks": self.fallbacks, "all_samples_unsafe": self.unsafe_plans,
+                "commands_slowed": self.slowed,
                 "margin_last_n": [round(float(x), 4) for x in m[-1]],
                 "margin_mean_n": [round(float(x), 4) for x in m.mean(axis=0)],
                 "margin_max_n": [round(float(x), 4) for x in m.max(axis=0)]}

@@ -63,6 +63,7 @@ from .guard import (
     first_period_forces,
     largest_safe,
     peak_over_limit,
+    slowdown_speed,
 )
 from .safety import SafetyMonitor, Stop
 
@@ -161,6 +162,7 @@ class Planner:
         self.errors: deque[float] = deque(maxlen=m.sigma_window)
         self._gen.manual_seed(int(m.seed))
         self._issued: tuple[float, float, float] | None = None  # (t, q, u*) of the last command
+        self._u_prev: float | None = None  # the command in force (Eq. M5)
         self.safety.reset()
         self.margin.reset()
         self.guard = GuardStats()
@@ -293,6 +295,21 @@ class Planner:
             self.U = torch.clamp(self.U, max=safe)
         return safe, False
 
+    def _slowdown(self, history: Trajectory, u_out: float) -> tuple[float, bool]:
+        """Eq. M5 on the samples of the control period that just ended; U is capped at the
+        command when it lowers it."""
+        sd = self.config.safety.slowdown
+        if not sd.enabled:
+            return u_out, False
+        n = max(1, round(self.config.control_period_s / self.config.cost.dt_s))
+        f_hat = float(max(np.abs(history.fx[-n:]).max(), np.abs(history.fz[-n:]).max()))
+        u = slowdown_speed(u_out, self._u_prev, f_hat, self.config.mppi.u_min,
+                           self.config.safety.f_prewarn_n, sd.start_n)
+        if u < u_out - 1e-9:
+            self.U = torch.clamp(self.U, max=u)
+            return u, True
+        return u_out, False
+
     def plan(self, history: Trajectory) -> float:
         """The blade speed command (mm/s) for the next control period (Algorithm 2 with the
         guard of Eq. M1-M3: u* checked against the model before it goes out)."""
@@ -307,8 +324,11 @@ class Planner:
         m = self.config.mppi
         u_star = float(min(max(float(self.U[0]), m.u_min), m.u_max))
         u_out, fallback = self._check(u_star)
-        self.guard.record(self.last["margin"], u_star, u_out, fallback, self.last["all_unsafe"])
-        self.last.update(u_star=u_star, u_out=u_out, fallback=fallback)
+        u_out, slowed = self._slowdown(history, u_out)
+        self.guard.record(self.last["margin"], u_star, u_out, fallback, self.last["all_unsafe"],
+                          slowed)
+        self.last.update(u_star=u_star, u_out=u_out, fallback=fallback, slowed=slowed)
+        self._u_prev = u_out
         t_now = float(history.t[-1])
         pred = first_period_forces(self.last["v0"], self.last["first"], u_out)
         self._predicted = None if pred is None else (t_now, pred)
