@@ -146,7 +146,7 @@ def test_experiment_trajectory_meta_carries_the_planner_guard() -> None:
     guard = rec["planner_guard"]
     assert guard["plans"] >= 5 and len(guard["margin_max_n"]) == 2
     assert set(guard) == {"plans", "commands_reduced", "reduced_max_mmps", "fallbacks",
-                          "all_samples_unsafe", "margin_last_n", "margin_mean_n",
+                          "all_samples_unsafe", "commands_slowed", "margin_last_n", "margin_mean_n",
                           "margin_max_n"}
 
 
