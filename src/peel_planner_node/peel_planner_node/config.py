@@ -294,7 +294,7 @@ class SlowdownConfig:
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """End-of-task conditions (section 4.2) and the guard of the force limit (Eq. M1-M4)."""
+    """End-of-task conditions (section 4.2) and the guard of the force limit (Eq. M1-M5)."""
 
     f_prewarn_n: float = 20.0
     t_max_s: float = 60.0

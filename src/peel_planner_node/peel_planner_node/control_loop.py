@@ -177,5 +177,5 @@ def guard_line(g: dict[str, Any]) -> str:
         return "guard: no plan"
     return (f"guard: {g['commands_reduced']} of {g['plans']} commands reduced (at most "
             f"{g['reduced_max_mmps']:.2f} mm/s), {g['fallbacks']} fallbacks, "
-            f"{g.get('commands_slowed', 0)} slowed by the measured force, margin max "
+            f"{g['commands_slowed']} slowed by the measured force, margin max "
             f"({g['margin_max_n'][0]:.2f}, {g['margin_max_n'][1]:.2f}) N")

@@ -1,4 +1,4 @@
-"""Holding the force limit under model error (docs/planner.md, Eq. M1-M4; not in the paper).
+"""Holding the force limit under model error (docs/planner.md, Eq. M1-M5; not in the paper).
 
 The planner's model is wrong by an amount it can measure: at every control instant the forces
 it predicted for the command that went out are compared with the forces then measured, sample
@@ -29,9 +29,9 @@ by sample (the 1-5 model steps of the control period the command was in force).
   ``least_force`` sends c_f, f = argmin_j g_j (the candidate with the lowest predicted peak,
   the slowest among equals), ``u_min`` sends c_0. Both are >= u_min > 0: the blade never stops,
   so q reaches q_ter within (q_ter - q_0) / u_min (50 s for 25 mm at 0.5 mm/s) < t_max.
-* Eq. M5, the slowdown on the measured force (``safety.slowdown.*``): the model's error is a
-  quantile over many samples, and a stick-slip sawtooth that climbs peel after peel reaches
-  the limit between two of them. With F_hat = max_{t, a} |F_a,t| over the samples measured in
+* Eq. M5, the slowdown on the measured force (``safety.slowdown.*``): Eq. M1's margin is a
+  quantile over the last ``window`` errors, and a stick-slip sawtooth whose teeth climb at
+  speed reaches the limit before the quantile follows it. With F_hat = max_{t, a} |F_a,t| over the samples measured in
   the control period that just ended and u_prev the command that was in force::
 
       s = clip((f_prewarn - F_hat) / (f_prewarn - f_s), 0, 1)
@@ -40,9 +40,9 @@ by sample (the 1-5 model steps of the control period the command was in force).
   (nav2 collision_monitor's slowdown zone, with force for distance). It reads no model.
 
 :class:`ForceMargin` is Eq. M1, :func:`check_candidates` / :func:`largest_safe` Eq. M3,
-:func:`fallback_speed` Eq. M4, :func:`slowdown_speed` Eq. M5, :func:`first_period_forces` the prediction for the issued
-command (from the batch's first control period, which depends only on v_0), :class:`GuardStats`
-what the trajectory's meta and the log report. Everything here is plain torch / numpy.
+:func:`fallback_speed` Eq. M4, :func:`slowdown_speed` Eq. M5, :func:`first_period_forces` the
+prediction for the issued command (from the batch's first control period, which depends only
+on v_0), :class:`GuardStats` what the trajectory's meta and the log report. Everything here is plain torch / numpy.
 """
 
 from __future__ import annotations

@@ -312,7 +312,8 @@ class Planner:
 
     def plan(self, history: Trajectory) -> float:
         """The blade speed command (mm/s) for the next control period (Algorithm 2 with the
-        guard of Eq. M1-M3: u* checked against the model before it goes out)."""
+        guard of Eq. M1-M5: u* checked against the model before it goes out, then against
+        the measured force when ``safety.slowdown`` is on)."""
         if len(history) == 0:
             raise PeelError("history 't' is empty: the planner needs at least the sample at t=0")
         if self.safety.check(history) is not None:
