@@ -125,3 +125,31 @@ def test_every_command_taking_a_parameter_file_refuses_unknown_names(tmp_path) -
         (line,) = res.stderr.strip().splitlines()
         assert expected in line, (argv, line)
         assert not (tmp_path / "ds").exists() and not (tmp_path / "g").exists()
+
+
+def test_an_experiment_override_file_for_another_node_is_refused_with_the_right_flag(tmp_path) -> None:
+    """Each of peel experiment's override flags reads one node's section; a file written for
+    another node would pass unread, so it is refused, naming the section and its flag."""
+    planner = tmp_path / "planner.yaml"
+    planner.write_text("peel_planner_node:\n  ros__parameters:\n    safety:\n      slowdown:\n"
+                       "        enabled: true\n")
+    bringup = tmp_path / "bringup.yaml"
+    bringup.write_text("peel_bringup:\n  ros__parameters:\n    experiment:\n      tasks: 3\n")
+    cases = [
+        (["experiment", "--params-file", str(planner)], "section 'peel_planner_node'",
+         "--planner-params"),
+        (["experiment", "grid", "--seeds", "0", "--params-file", str(planner)], "section 'peel_planner_node'",
+         "--planner-params"),
+        (["experiment", "--planner-params", str(bringup)], "section 'peel_bringup'",
+         "--params-file"),
+        (["experiment", "--sim-params", str(planner)], "section 'peel_planner_node'",
+         "--planner-params"),
+    ]
+    for argv, section, flag in cases:
+        out = tmp_path / "ex"
+        res = subprocess.run([sys.executable, "-m", "peel_bringup.cli", *argv, "--tasks", "1",
+                              "--out", str(out)], capture_output=True, text=True, timeout=120)
+        assert res.returncode == 2, (argv, res.stdout, res.stderr)
+        (line,) = res.stderr.strip().splitlines()
+        assert section in line and f"pass it with {flag}" in line, (argv, line)
+        assert not out.exists()

@@ -54,15 +54,28 @@ def _effect_arg(p: ArgumentParser) -> None:
                         "docs/residual.md); repeatable")
 
 
+# each override flag, the one node whose section it reads
+_PARAM_FLAGS = (("params_file", "peel_bringup"), ("sim_params", "peel_sim_node"),
+                ("planner_params", "peel_planner_node"), ("learner_params", "model_learner_node"))
+
+
 def _check_param_files(args: argparse.Namespace) -> None:
     """Read every override file now: a missing, non-UTF-8 or malformed one is refused before
-    any peel runs (the workers read them again)."""
-    from peel_msgs_py.params import load_param_file
+    any peel runs (the workers read them again), and so is a file with a section for a node
+    other than its flag's, which that flag would pass over unread."""
+    from peel_msgs_py.params import load_param_file, node_sections
 
-    for attr, node in (("sim_params", "peel_sim_node"), ("planner_params", "peel_planner_node"),
-                       ("learner_params", "model_learner_node")):
-        if getattr(args, attr, None):
-            load_param_file(getattr(args, attr), node)
+    flag_of = {node: "--" + attr.replace("_", "-") for attr, node in _PARAM_FLAGS}
+    for attr, node in _PARAM_FLAGS:
+        path = getattr(args, attr, None)
+        if not path:
+            continue
+        load_param_file(path, node)
+        other = [n for n in node_sections(path) if n != node]
+        if other:
+            hint = f"; pass it with {flag_of[other[0]]}" if other[0] in flag_of else ""
+            raise PeelError(f"{flag_of[node]} {path}: section '{other[0]}' is not read by "
+                            f"{flag_of[node]}, which takes {node}'s parameters only{hint}")
 
 
 def _base_cfg(args: argparse.Namespace) -> ExperimentConfig:

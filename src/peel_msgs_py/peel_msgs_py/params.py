@@ -152,6 +152,15 @@ def load_param_file(path: str | os.PathLike[str], node_name: str) -> dict[str, A
     return merged
 
 
+def node_sections(path: str | os.PathLike[str]) -> list[str]:
+    """The node names a parameter file has sections for, ``/**`` left out, leading ``/`` dropped.
+
+    A command that reads one node's parameters from a file uses this to refuse a file written
+    for another node, whose entries :func:`load_param_file` would pass over without a word.
+    """
+    return sorted({str(k).lstrip("/") for k in _read_yaml(Path(path)) if str(k) != "/**"})
+
+
 def _read_yaml(path: Path) -> Mapping[str, Any]:
     if path.is_dir():
         raise PeelError(f"parameter file {path} is a directory, not a file")
