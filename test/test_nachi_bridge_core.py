@@ -184,6 +184,27 @@ def test_force_spike_sends_stop_within_the_same_sample() -> None:
     assert "prewarning" in driver.logs[i_stop][1]
 
 
+def test_the_slowdown_zone_scales_v_at_the_sample_and_restores_the_command_after() -> None:
+    """Eq. M6 on the Nachi bridge: a sample reporting 18.5 N between two control instants makes
+    the bridge send V = (20 - 18.5) / 3 x 4 = 2 mm/s at once, and V 4 after the next sample
+    (back under 17 N); the trajectory's u holds the speed in force, its meta what the zone did."""
+    driver, _bridge, emu = run(("spike:t=0.7,f=18.5",), emu_speed=1.0,
+                              **{"safety.slowdown.enabled": True})
+    assert outcomes(driver) == [("done", "reached")]
+    sent = [e.data["u"] for e in emu.of_kind("v")]
+    i = sent.index(2.0)
+    assert sent[i + 1] == 4.0 and sent.count(2.0) == 1
+    traj = driver.results[0].trajectory
+    assert traj is not None
+    k = int(np.argmin(np.abs(traj.t - 0.7)))
+    assert traj.fx[k] == pytest.approx(18.5) and traj.u[k] == pytest.approx(2.0)
+    assert np.all(traj.u[:-1][np.arange(len(traj) - 1) != k] == 4.0)
+    stats = traj.meta["slowdown"]
+    assert stats["enabled"] and stats["samples_slowed"] == 1 and stats["min_scale"] == 0.5
+    assert any("slowdown zone (Eq. M6" in text and "slowed 1 of" in text
+               for _, text in driver.logs)
+
+
 def test_controller_force_alarm_ends_the_task_as_safety_stop() -> None:
     # the bridge's prewarning set above the controller's 25 N: the controller's alarm acts
     driver, _bridge, _emu = run(speed=lambda k, t: 20.0, q_ter_mm=25.0,

@@ -9,7 +9,8 @@ learner's update of that task (v(k) after task k); before each command it sends 
 guard report (``/peel/planner_safety``). Checked on the bag: the topics, their stamps
 (task k at k * node.task_slot_s + the plant's t, frame peel_task_<k>, /clock with them), the
 trajectory message, model following (task 2 starts only after the update of task 1 and
-records it as its model) and the same ``planner_guard`` safety fields in both bridges' meta.
+records it as its model) and the same ``planner_guard`` and ``slowdown`` safety fields in both
+bridges' meta.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from nachi_rig import SLOT_S, Rig, bridge_cmd
 from peel_bag import bagread
 from peel_bridge.loop import TaskLoop
 from peel_bridge.plant_node import PlantTopics
+from peel_bridge.slowdown import SlowdownParams
 from peel_msgs_py import topics
 from peel_nachi_emulator.emulator import ControllerEmulator, EmulatorOptions
 from peel_nachi_emulator.robot import Robot
@@ -127,6 +129,9 @@ def test_topics_stamps_trajectory_and_model_following(bridge: tuple[str, list[st
         assert {"task": k, **guard} in sent  # one the planner sent for this task, the last
         assert guard["plans"] >= len(sent) - 1 >= 1  # or (a report racing the end) the one before
         assert guard["fallbacks"] == guard["plans"] // 3
+        # the bridge's own slowdown zone (Eq. M6): the same fields, shipped off
+        assert traj.meta["slowdown"] == {**SlowdownParams().zone(20.0).as_dict(),
+                                         "samples": traj.meta["slowdown"]["samples"]}, name
 
     arrays = bagread.read_topics(tmp_path / "bag")
     w, tw, pose = arrays[topics.WRENCH], arrays[topics.TWIST], arrays[topics.POSE]

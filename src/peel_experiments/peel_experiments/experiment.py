@@ -202,6 +202,7 @@ def run_job(method: str, seed: int, setup: Setup,
                          "model_version": version, "planner_guard": planner.guard.as_dict()}
             rec = {"task": k + 1, **_trajectory_record(traj, j), "model_version": version,
                    "planner_guard": traj.meta["planner_guard"],
+                   "slowdown": traj.meta.get("slowdown"),
                    "update_s": update_s, "plan_s": float(np.mean(plan_times)) if plan_times
                    else 0.0, "episode_s": episode_s, "substrate": params}
             if stepper is not None:

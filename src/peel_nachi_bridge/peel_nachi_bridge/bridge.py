@@ -21,6 +21,10 @@
   - malformed, oversize and non-finite lines are counted per kind and logged; a run of
     ``safety.bad_line_limit`` of them during a task sends ``STOP``;
   - no sample for ``safety.stall_timeout_s`` of wall time during a task sends ``STOP``;
+  - with ``safety.slowdown.enabled``, every sample's force scales the planner's command (the
+    slowdown zone of Eq. M6, :mod:`peel_bridge.slowdown`, as the simulator bridge runs it): a
+    new ``V`` goes out when that changes the speed in force, and the command again once the
+    force is below ``safety.slowdown.start_n``;
   - no ``DONE`` within ``safety.stop_timeout_s`` of ``STOP``: the link is closed and reopened;
   - the controller's ``ALARM`` (``10 watchdog`` when the planner went silent) ends the task and
     is recorded in the trajectory's meta.
@@ -39,6 +43,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from peel_bridge.slowdown import slowdown_line
 from peel_msgs_py.wire import DropLog, SpeedLimits
 
 from . import protocol as p
@@ -80,6 +85,8 @@ class NachiBridge:
         self.link, self.safety, self.listener = link, safety, listener
         self.stats = BridgeStats()
         self.limits = SpeedLimits(safety.u_min_mmps, safety.u_max_mmps)
+        self._zone = safety.slowdown.zone(safety.f_prewarn_n)  # Eq. M6, per task
+        self._u_cmd: float | None = None  # the planner's command in force (before Eq. M6)
         self._drops = DropLog()
         self.gave_up: str | None = None
         self._lock = threading.Lock()  # state, task, connection (with the node's command())
@@ -159,6 +166,8 @@ class NachiBridge:
             if self._state != RUNNING or task is None or task.index != index or conn is None:
                 self.stats.dropped_commands += 1
                 return False
+            self._u_cmd = u_mmps
+            u_mmps = self._zone.limit(u_mmps)  # Eq. M6 after the latest sample
             try:
                 conn.send(p.Velocity(u_mmps))
             except LinkError:
@@ -320,8 +329,26 @@ class NachiBridge:
                             f"prewarning |F| >= {f:g} N at t={s.t:.3f} s (fx={s.fx:.2f}, "
                             f"fz={s.fz:.2f} N)", at)
         task.add(s)
+        self._slow_down(task, s)
         self._last_sample = time.monotonic()
         self._notify(self.listener.on_sample, task.index, s)
+
+    def _slow_down(self, task: TaskRecorder, s: p.Sample) -> None:
+        """Eq. M6 after sample ``s``: the planner's command scaled by its force, sent as ``V``
+        when that changes the speed in force (and the command back once the force is low)."""
+        self._zone.measured(s.fx, s.fz)
+        with self._lock:
+            conn, u_cmd = self._conn, self._u_cmd
+            if self._state != RUNNING or conn is None or u_cmd is None:
+                return
+            u = self._zone.speed(u_cmd)
+            if u == task.u_in_force:
+                return
+            try:
+                conn.send(p.Velocity(u))
+            except LinkError:
+                return
+            task.command_sent(u)
 
     def _on_ok_start(self, msg: p.OkStart) -> None:
         conn = self._conn
@@ -331,6 +358,8 @@ class NachiBridge:
         rec = TaskRecorder(self._starting, conn.hello.controller_id, msg.task_id)
         with self._lock:
             self._task, self._state, self._starting = rec, RUNNING, None
+            self._u_cmd = None
+            self._zone.reset()
         self._deadline, self._bad_run, self._ending = None, 0, None
         self._last_sample = time.monotonic()
         self._log("info", f"task {rec.index + 1}: running (controller task id {msg.task_id})")
@@ -403,6 +432,11 @@ class NachiBridge:
         if task is None:
             return
         result = task.result(outcome, reason, detail)
+        if result.trajectory is not None:
+            result.trajectory.meta["slowdown"] = self._zone.as_dict()
+        line = slowdown_line(task.index + 1, self._zone.as_dict())
+        if line is not None:
+            self._log("info", line)
         level = "info" if outcome in ("done", "timeout") else "warn"
         self._log(level, f"task {task.index + 1}: {outcome} ({detail}), {len(task.samples)} samples")
         self._notify(self.listener.on_task_end, result)

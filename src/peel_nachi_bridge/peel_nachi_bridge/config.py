@@ -12,9 +12,10 @@ one line and exits 2.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
+from peel_bridge.slowdown import SlowdownParams
 from peel_msgs_py.errors import ParameterError
 from peel_msgs_py.params import load_node_params, validate
 from peel_msgs_py.wire import CMD_MAX_MMPS, CMD_MIN_MMPS
@@ -48,6 +49,7 @@ class SafetyParams:
     stop_timeout_s: float
     u_min_mmps: float = CMD_MIN_MMPS
     u_max_mmps: float = CMD_MAX_MMPS
+    slowdown: SlowdownParams = field(default_factory=SlowdownParams)  # Eq. M6 (peel_bridge.slowdown)
 
 
 @dataclass(frozen=True)
@@ -90,11 +92,19 @@ class BridgeConfig:
                 f"parameter 'safety.u_max_mmps' = {values['safety.u_max_mmps']!r} is below "
                 f"'safety.u_min_mmps' = {values['safety.u_min_mmps']!r}")
 
-        def group(name: str, kind: type) -> Any:
-            prefix = name + "."
-            return kind(**{k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix)})
+        if values["safety.slowdown.start_n"] >= values["safety.f_prewarn_n"]:
+            raise ParameterError(
+                f"parameter 'safety.slowdown.start_n' = {values['safety.slowdown.start_n']!r} "
+                f"must be below 'safety.f_prewarn_n' = {values['safety.f_prewarn_n']!r} (Eq. M6)")
+        slowdown = SlowdownParams.from_params(values, "safety")
+        values = {k: v for k, v in values.items() if not k.startswith("safety.slowdown.")}
 
-        return cls(group("link", LinkParams), group("safety", SafetyParams),
+        def group(name: str, kind: type, **extra: Any) -> Any:
+            prefix = name + "."
+            return kind(**{k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix)},
+                        **extra)
+
+        return cls(group("link", LinkParams), group("safety", SafetyParams, slowdown=slowdown),
                    group("node", NodeParams))
 
 

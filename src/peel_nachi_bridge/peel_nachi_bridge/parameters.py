@@ -13,6 +13,7 @@ run time: the link and the task sequence are fixed when the node starts. The phy
 from __future__ import annotations
 
 from peel_bridge.parameters import LOOP_SPECS
+from peel_bridge.slowdown import slowdown_specs
 from peel_msgs_py.lifecycle import AUTOSTART
 from peel_msgs_py.params import USE_SIM_TIME, ParamSpec
 from peel_msgs_py.wire import speed_limit_specs
@@ -52,6 +53,7 @@ SAFETY_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("safety.stop_timeout_s", float, 2.0,
               "wall s for DONE after STOP before the link is closed", min=0.01),
     *speed_limit_specs("safety", "forwarded as V"),
+    *slowdown_specs("safety"),  # Eq. M6, as peel_sim_node's (peel_bridge.slowdown)
 )
 
 #: ``node:``: the task sequence, as peel_sim_node's (:data:`peel_bridge.parameters.LOOP_SPECS`).

@@ -13,6 +13,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
+from peel_bridge.slowdown import SlowdownParams, SlowdownZone, slowdown_specs
 from peel_msgs_py.errors import ParameterError
 from peel_msgs_py.params import ParamSpec, load_node_params, validate
 
@@ -109,7 +110,7 @@ _TABLE: list[tuple[str, type, Any, float | None, float | None, str]] = [
 
 SPECS: list[ParamSpec] = [
     ParamSpec(name, typ, default, desc, mn, mx) for name, typ, default, mn, mx, desc in _TABLE
-]
+] + list(slowdown_specs("safety"))  # Eq. M6, the bridge's slowdown zone (peel_bridge.slowdown)
 
 #: Intervals [low, high] that must not be inverted.
 _INTERVALS = [
@@ -192,7 +193,15 @@ class SimConfig:
         for name, value in vals.items():
             if isinstance(value, float) and not math.isfinite(value):
                 raise ParameterError(f"parameter '{name}' must be finite, got {value!r}")
+        if vals["safety.slowdown.start_n"] >= vals["task.f_prewarn_n"]:
+            raise ParameterError(
+                f"parameter 'safety.slowdown.start_n' = {vals['safety.slowdown.start_n']!r} must "
+                f"be below 'task.f_prewarn_n' = {vals['task.f_prewarn_n']!r} (Eq. M6)")
         return cls(flat=vals)
+
+    def slowdown_zone(self) -> SlowdownZone:
+        """Eq. M6, the bridge's slowdown zone, from ``safety.slowdown.*`` and the prewarning."""
+        return SlowdownParams.from_params(self.flat, "safety").zone(self.task.f_prewarn_n)
 
 
 def load_sim_config(overrides: str | os.PathLike[str] | dict[str, Any] | None = None) -> SimConfig:

@@ -198,6 +198,12 @@ class PeelEnv:
             )
         return self._hist
 
+    @property
+    def last_forces(self) -> tuple[float, float]:
+        """(F_RX, F_RZ) of the latest sample, N, as measured."""
+        row = self._buf[self._n - 1]
+        return float(row[4]), float(row[5])
+
     def step(self, u_mmps: float) -> None:
         """Advance one sample (0.1 s) under the command ``u_mmps`` (mm/s)."""
         if self.done:

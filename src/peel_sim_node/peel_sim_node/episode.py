@@ -20,18 +20,26 @@ Policy = Callable[[Trajectory], float]
 def run_episode(env: PeelEnv, policy: Policy, *, seed: int | None = None,
                 params: dict[str, float] | None = None) -> Trajectory:
     """Reset ``env``, then every control period (0.5 s = 5 samples) ask ``u = policy(history)``
-    (mm/s) and step with it until the task ends (done / timeout / safety_stop)."""
+    (mm/s) and step with it until the task ends (done / timeout / safety_stop).
+
+    Each sample's speed is the command after the bridge's slowdown zone (Eq. M6,
+    ``safety.slowdown.*``; the command itself when it is off), as the simulator node runs it;
+    the trajectory's ``meta["slowdown"]`` says what the zone did."""
     env.reset(seed=seed, params=params)
+    zone = env.cfg.slowdown_zone()
     per = env.cfg.samples_per_control
     while not env.done:
         u = float(policy(env.history))
         if u != u:
             raise PeelError("policy returned NaN")
         for _ in range(per):
-            env.step(u)
+            zone.measured(*env.last_forces)
+            env.step(zone.speed(u))
             if env.done:
                 break
-    return env.history
+    traj = env.history
+    traj.meta = {**traj.meta, "slowdown": zone.as_dict()}
+    return traj
 
 
 def exploratory_tasks(cfg: SimConfig, *, source: str = "plant", effects: Sequence[Effect] = (),

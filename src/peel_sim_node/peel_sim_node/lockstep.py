@@ -8,7 +8,8 @@ the time restarts at 0 (``t_k = k * dt``, section 4.2). Per control period (5 sa
    (:attr:`TaskSequence.awaiting` holds its stamp);
 2. :meth:`TaskSequence.apply` takes the command that answers exactly that stamp, steps the env
    for one control period and returns the new samples, the last of which is the next control
-   instant (unless the task ended);
+   instant (unless the task ended); each sample's speed is the command after the slowdown zone
+   of Eq. M6 (:mod:`peel_bridge.slowdown`), as in ``peel experiment``;
 3. :meth:`TaskSequence.finish` closes the task: the trajectory with its provenance ``meta``.
 
 Task ``k``'s physical parameters and noise seed derive from ``(seed, k)`` exactly as in
@@ -49,6 +50,7 @@ class TaskSequence:
         self.slot_ns = to_ns(task_slot_s)
         self.steps = int(cfg.samples_per_control)
         self.env = PeelEnv(cfg, source=source, seed=task_seed(seed, 0), effects=effects)
+        self.zone = cfg.slowdown_zone()  # Eq. M6 on every sample, as run_episode
         self.index = -1  # task running or last finished
         self.awaiting: int | None = None  # stamp (ns) of the sample waiting for its command
         self.running = False
@@ -68,6 +70,7 @@ class TaskSequence:
         self.env.reset(seed=task_seed(self.seed, index),
                        params=task_params(self.cfg, self.seed, index, self.source))
         self.running = True
+        self.zone.reset()
         first = self.last()
         self.awaiting = first.stamp_ns
         return first
@@ -82,7 +85,8 @@ class TaskSequence:
             return None
         out = []
         for _ in range(self.steps):
-            self.env.step(u_mmps)
+            self.zone.measured(*self.env.last_forces)
+            self.env.step(self.zone.speed(u_mmps))
             out.append(self.last())
             if self.env.done:
                 break
@@ -101,6 +105,7 @@ class TaskSequence:
             traj = traj.slice(0, len(traj))
             traj.outcome = outcome
         traj.meta.update({"source": self.source, "seed": self.seed, "task_index": self.index,
+                          "slowdown": self.zone.as_dict(),
                           "task_seed": task_seed(self.seed, self.index),
                           "t0_ros_s": self.index * self.slot_ns / 1e9, **meta})
         self.running = False

@@ -37,6 +37,7 @@ from rclpy.clock import Clock, ClockType
 
 from peel_bridge.loop import LoopParams, TaskLoop
 from peel_bridge.plant_node import PlantTopics
+from peel_bridge.slowdown import log_slowdown
 from peel_msgs_py import topics
 from peel_msgs_py.diagnostics import Status
 from peel_msgs_py.errors import PeelError
@@ -226,6 +227,7 @@ class SimNode(NamedRefusals, ManagedNode):
                                 "cmd_clamped": self.clamped, "cmd_dropped": self.dropped},
                                outcome)
         self.clamped = self.dropped = 0
+        log_slowdown(self.get_logger(), index + 1, traj.meta["slowdown"])
         self.plant.publish_trajectory(traj, index + 1)
         self.last_outcome = traj.outcome
         self.loop.task_ended(time.monotonic(), index)
