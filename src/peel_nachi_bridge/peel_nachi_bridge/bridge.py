@@ -87,6 +87,7 @@ class NachiBridge:
         self.limits = SpeedLimits(safety.u_min_mmps, safety.u_max_mmps)
         self._zone = safety.slowdown.zone(safety.f_prewarn_n)  # Eq. M6, per task
         self._u_cmd: float | None = None  # the planner's command in force (before Eq. M6)
+        self._u_sent: float | None = None  # the last V sent for it (after Eq. M6)
         self._drops = DropLog()
         self.gave_up: str | None = None
         self._lock = threading.Lock()  # state, task, connection (with the node's command())
@@ -167,7 +168,7 @@ class NachiBridge:
                 self.stats.dropped_commands += 1
                 return False
             self._u_cmd = u_mmps
-            u_mmps = self._zone.limit(u_mmps)  # Eq. M6 after the latest sample
+            u_mmps = self._u_sent = self._zone.limit(u_mmps)  # Eq. M6 after the latest sample
             try:
                 conn.send(p.Velocity(u_mmps))
             except LinkError:
@@ -335,15 +336,17 @@ class NachiBridge:
 
     def _slow_down(self, task: TaskRecorder, s: p.Sample) -> None:
         """Eq. M6 after sample ``s``: the planner's command scaled by its force, sent as ``V``
-        when that changes the speed in force (and the command back once the force is low)."""
+        when that changes the last ``V`` (and the command again once the force is low). A ``V``
+        the controller refused is not sent again."""
         self._zone.measured(s.fx, s.fz)
         with self._lock:
             conn, u_cmd = self._conn, self._u_cmd
             if self._state != RUNNING or conn is None or u_cmd is None:
                 return
             u = self._zone.speed(u_cmd)
-            if u == task.u_in_force:
+            if u == self._u_sent:
                 return
+            self._u_sent = u
             try:
                 conn.send(p.Velocity(u))
             except LinkError:
@@ -358,7 +361,7 @@ class NachiBridge:
         rec = TaskRecorder(self._starting, conn.hello.controller_id, msg.task_id)
         with self._lock:
             self._task, self._state, self._starting = rec, RUNNING, None
-            self._u_cmd = None
+            self._u_cmd = self._u_sent = None
             self._zone.reset()
         self._deadline, self._bad_run, self._ending = None, 0, None
         self._last_sample = time.monotonic()
