@@ -38,6 +38,7 @@ by sample (the 1-5 model steps of the control period the command was in force).
       u_out = max(u_min, min(u_out, s u_prev))      when F_hat >= f_s
 
   (nav2 collision_monitor's slowdown zone, with force for distance). It reads no model.
+  Eq. M6, the same zone at every sample, is the plant bridges' (:mod:`peel_bridge.slowdown`).
 
 :class:`ForceMargin` is Eq. M1, :func:`check_candidates` / :func:`largest_safe` Eq. M3,
 :func:`fallback_speed` Eq. M4, :func:`slowdown_speed` Eq. M5, :func:`first_period_forces` the
