@@ -52,11 +52,15 @@ class SlowdownParams:
     floor_mmps: float = 0.5
 
     @classmethod
-    def from_params(cls, values: Mapping[str, Any], group: str) -> SlowdownParams:
-        """From a flat parameter dict holding ``<group>.slowdown.*``."""
+    def from_params(cls, values: Mapping[str, Any], group: str, prewarn: str) -> SlowdownParams:
+        """From a flat parameter dict holding ``<group>.slowdown.*`` and the prewarning under
+        the name ``prewarn``; a start_n at or above the prewarning is refused by name."""
         g = f"{group}.slowdown."
-        return cls(bool(values[g + "enabled"]), float(values[g + "start_n"]),
-                   float(values[g + "floor_mmps"]))
+        start, f_prewarn = float(values[g + "start_n"]), float(values[prewarn])
+        if start >= f_prewarn:
+            raise ParameterError(f"parameter '{g}start_n' = {start!r} must be below "
+                                 f"'{prewarn}' = {f_prewarn!r} (Eq. M6)")
+        return cls(bool(values[g + "enabled"]), start, float(values[g + "floor_mmps"]))
 
     def zone(self, f_prewarn_n: float) -> SlowdownZone:
         """A fresh zone under the prewarning ``f_prewarn_n``, N."""
@@ -75,11 +79,6 @@ class SlowdownZone:
     samples_slowed: int = 0
     min_scale: float = 1.0
     _force: float = field(default=0.0, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.enabled and not self.start_n < self.f_prewarn_n:
-            raise ParameterError(f"parameter 'slowdown.start_n' must be below the prewarning "
-                                 f"{self.f_prewarn_n:g} N, got {self.start_n!r}")
 
     def reset(self) -> None:
         """A new task: no sample measured yet, nothing counted."""

@@ -23,7 +23,7 @@
   - no sample for ``safety.stall_timeout_s`` of wall time during a task sends ``STOP``;
   - with ``safety.slowdown.enabled``, every sample's force scales the planner's command (the
     slowdown zone of Eq. M6, :mod:`peel_bridge.slowdown`, as the simulator bridge runs it): a
-    new ``V`` goes out when that changes the speed in force, and the command again once the
+    new ``V`` goes out when that changes the last ``V`` sent, and the command again once the
     force is below ``safety.slowdown.start_n``;
   - no ``DONE`` within ``safety.stop_timeout_s`` of ``STOP``: the link is closed and reopened;
   - the controller's ``ALARM`` (``10 watchdog`` when the planner went silent) ends the task and
@@ -435,9 +435,10 @@ class NachiBridge:
         if task is None:
             return
         result = task.result(outcome, reason, detail)
+        zone = self._zone.as_dict()
         if result.trajectory is not None:
-            result.trajectory.meta["slowdown"] = self._zone.as_dict()
-        line = slowdown_line(task.index + 1, self._zone.as_dict())
+            result.trajectory.meta["slowdown"] = zone
+        line = slowdown_line(task.index + 1, zone)
         if line is not None:
             self._log("info", line)
         level = "info" if outcome in ("done", "timeout") else "warn"

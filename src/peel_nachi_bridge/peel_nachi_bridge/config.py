@@ -92,11 +92,7 @@ class BridgeConfig:
                 f"parameter 'safety.u_max_mmps' = {values['safety.u_max_mmps']!r} is below "
                 f"'safety.u_min_mmps' = {values['safety.u_min_mmps']!r}")
 
-        if values["safety.slowdown.start_n"] >= values["safety.f_prewarn_n"]:
-            raise ParameterError(
-                f"parameter 'safety.slowdown.start_n' = {values['safety.slowdown.start_n']!r} "
-                f"must be below 'safety.f_prewarn_n' = {values['safety.f_prewarn_n']!r} (Eq. M6)")
-        slowdown = SlowdownParams.from_params(values, "safety")
+        slowdown = SlowdownParams.from_params(values, "safety", "safety.f_prewarn_n")
         values = {k: v for k, v in values.items() if not k.startswith("safety.slowdown.")}
 
         def group(name: str, kind: type, **extra: Any) -> Any:

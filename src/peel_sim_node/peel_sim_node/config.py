@@ -193,15 +193,13 @@ class SimConfig:
         for name, value in vals.items():
             if isinstance(value, float) and not math.isfinite(value):
                 raise ParameterError(f"parameter '{name}' must be finite, got {value!r}")
-        if vals["safety.slowdown.start_n"] >= vals["task.f_prewarn_n"]:
-            raise ParameterError(
-                f"parameter 'safety.slowdown.start_n' = {vals['safety.slowdown.start_n']!r} must "
-                f"be below 'task.f_prewarn_n' = {vals['task.f_prewarn_n']!r} (Eq. M6)")
+        SlowdownParams.from_params(vals, "safety", "task.f_prewarn_n")  # start_n checked
         return cls(flat=vals)
 
     def slowdown_zone(self) -> SlowdownZone:
         """Eq. M6, the bridge's slowdown zone, from ``safety.slowdown.*`` and the prewarning."""
-        return SlowdownParams.from_params(self.flat, "safety").zone(self.task.f_prewarn_n)
+        params = SlowdownParams.from_params(self.flat, "safety", "task.f_prewarn_n")
+        return params.zone(self.task.f_prewarn_n)
 
 
 def load_sim_config(overrides: str | os.PathLike[str] | dict[str, Any] | None = None) -> SimConfig:
