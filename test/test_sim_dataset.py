@@ -10,7 +10,7 @@ import pytest
 
 from peel_msgs_py.errors import PeelError
 from peel_sim_node.config import load_sim_config
-from peel_sim_node.dataset import generate_dataset, load_split, split_of_sets
+from peel_sim_node.dataset import config_hash, generate_dataset, load_split, split_of_sets
 
 CFG = load_sim_config()
 PEEL = [sys.executable, "-m", "peel_bringup.cli"]
@@ -111,3 +111,15 @@ def test_plant_settings_do_not_invalidate_a_sim_dataset(tmp_path):
     sim_changed = load_sim_config({"load.base_n": 1.4})
     with pytest.raises(PeelError, match="config_hash"):
         generate_dataset(sim_changed, d, param_sets=1, per_set=1, seed=4, progress=False)
+
+
+def test_the_slowdown_zone_shapes_the_dataset_hash_only_when_it_is_enabled():
+    """Eq. M6 off leaves every command as sent, so its other settings cannot change the data;
+    on, it can, and the hash (the resume check and the shipped model's provenance) sees it."""
+    off = config_hash(CFG, "sim")
+    assert config_hash(load_sim_config({"safety.slowdown.start_n": 18.0}), "sim") == off
+    on = load_sim_config({"safety.slowdown.enabled": True})
+    assert config_hash(on, "sim") != off
+    assert config_hash(load_sim_config({"safety.slowdown.enabled": True,
+                                        "safety.slowdown.start_n": 18.0}), "sim") != \
+        config_hash(on, "sim")

@@ -42,12 +42,16 @@ def test_the_speed_follows_eq_m6_and_never_rises_above_the_command() -> None:
 
 
 def test_both_bridges_ship_it_off_and_refuse_a_start_at_or_above_the_prewarning() -> None:
+    """Enabled, f_s must lie below the prewarning; disabled, the prewarning may go below f_s."""
     assert load_sim_config().slowdown_zone().enabled is False
     assert load_config().safety.slowdown == SlowdownParams()
+    on = {"safety.slowdown.enabled": True}
     with pytest.raises(ParameterError, match=r"'safety\.slowdown\.start_n' = 20\.0 must be below"):
-        load_sim_config({"safety.slowdown.start_n": 20.0})
+        load_sim_config({**on, "safety.slowdown.start_n": 20.0})
     with pytest.raises(ParameterError, match=r"'safety\.slowdown\.start_n' = 21\.0 must be below"):
-        load_config({"safety.slowdown.start_n": 21.0})
+        load_config({**on, "safety.slowdown.start_n": 21.0})
+    assert load_sim_config({"safety.slowdown.start_n": 20.0}).slowdown_zone().enabled is False
+    assert load_config({"safety.f_prewarn_n": 15.0}).safety.slowdown.start_n == 17.0
     with pytest.raises(ParameterError, match=r"safety\.slowdown\.floor_mmps"):
         load_sim_config({"safety.slowdown.floor_mmps": -1.0})
 

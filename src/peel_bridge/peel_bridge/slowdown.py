@@ -54,13 +54,15 @@ class SlowdownParams:
     @classmethod
     def from_params(cls, values: Mapping[str, Any], group: str, prewarn: str) -> SlowdownParams:
         """From a flat parameter dict holding ``<group>.slowdown.*`` and the prewarning under
-        the name ``prewarn``; a start_n at or above the prewarning is refused by name."""
+        the name ``prewarn``; with the zone enabled, a start_n at or above the prewarning is
+        refused by name (a disabled zone leaves the prewarning free to go below f_s)."""
         g = f"{group}.slowdown."
+        enabled = bool(values[g + "enabled"])
         start, f_prewarn = float(values[g + "start_n"]), float(values[prewarn])
-        if start >= f_prewarn:
+        if enabled and start >= f_prewarn:
             raise ParameterError(f"parameter '{g}start_n' = {start!r} must be below "
                                  f"'{prewarn}' = {f_prewarn!r} (Eq. M6)")
-        return cls(bool(values[g + "enabled"]), start, float(values[g + "floor_mmps"]))
+        return cls(enabled, start, float(values[g + "floor_mmps"]))
 
     def zone(self, f_prewarn_n: float) -> SlowdownZone:
         """A fresh zone under the prewarning ``f_prewarn_n``, N."""

@@ -63,9 +63,13 @@ def config_hash(cfg: SimConfig, source: str | None = None) -> str:
     """Hash of the simulator parameters that shape the data of ``source``: every group but
     ``dataset.*`` and ``sequence.*`` (experiments only); for ``source="sim"`` also not the plant
     levels' groups (``plant.*``, ``plant_l2.*``, ``plant_l3.*``), which cannot change simulator
-    data (so tuning the plant does not invalidate simulator datasets)."""
+    data (so tuning the plant does not invalidate simulator datasets). The bridge's slowdown
+    zone (``safety.slowdown.*``, Eq. M6) counts only when it is enabled: off, it leaves every
+    command as sent, whatever its other settings."""
     skip = (("dataset.", "sequence.", "plant.", "plant_l2.", "plant_l3.") if source == "sim"
             else ("dataset.", "sequence."))
+    if not cfg.flat.get("safety.slowdown.enabled", False):
+        skip += ("safety.slowdown.",)
     flat = {k: v for k, v in cfg.flat.items() if not k.startswith(skip)}
     return hashlib.sha256(json.dumps(flat, sort_keys=True).encode()).hexdigest()[:16]
 
