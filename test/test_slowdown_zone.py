@@ -41,6 +41,30 @@ def test_the_speed_follows_eq_m6_and_never_rises_above_the_command() -> None:
     assert off.speed(8.0) == 8.0 and off.as_dict()["samples_slowed"] == 0
 
 
+def test_with_a_lead_each_axis_is_carried_ahead_at_its_last_rise() -> None:
+    """L = 2: F_k = max_a(F_a,k + 2 max(0, F_a,k - F_a,k-1)); a task's first sample has no rise,
+    a falling force is not carried down, and reset() forgets the previous sample."""
+    z = SlowdownParams(True, 17.0, 0.5, lead_samples=2).zone(20.0)
+    z.measured(16.0, 0.0)                       # first sample: F_k = 16, below f_s
+    assert z.speed(4.0) == 4.0
+    z.measured(16.5, 3.0)                       # RX rose 0.5: F_k = 17.5, s = 5/6
+    assert z.speed(4.0) == pytest.approx(4.0 * 2.5 / 3.0)
+    z.measured(15.0, 6.0)                       # RX fell (not carried down), RZ rose 3: F_k = 12
+    assert z.speed(4.0) == 4.0
+    z.measured(18.0, 6.0)                       # RX rose 3: F_k = 24, the floor
+    assert z.speed(4.0) == 0.5
+    stats = z.as_dict()
+    assert stats["lead_samples"] == 2 and stats["samples_slowed"] == 2
+    assert "from 17 N, 2 ahead" in (slowdown_line(4, stats) or "")
+    z.reset()
+    z.measured(16.9, 0.0)                       # no previous sample after reset: no rise
+    assert z.speed(4.0) == 4.0
+    assert load_sim_config({"safety.slowdown.lead_samples": 1}).slowdown_zone().lead_samples == 1
+    assert load_config({"safety.slowdown.lead_samples": 3}).safety.slowdown.lead_samples == 3
+    with pytest.raises(ParameterError, match=r"safety\.slowdown\.lead_samples"):
+        load_sim_config({"safety.slowdown.lead_samples": 6})
+
+
 def test_both_bridges_ship_it_off_and_refuse_a_start_at_or_above_the_prewarning() -> None:
     """Enabled, f_s must lie below the prewarning; disabled, the prewarning may go below f_s."""
     assert load_sim_config().slowdown_zone().enabled is False
