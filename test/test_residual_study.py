@@ -177,3 +177,37 @@ def test_the_study_script_is_independent_of_the_worker_count(tmp_path: Path) -> 
     assert "| clean data, tasks |" in (tmp_path / "shipped" / "study.md").read_text()
     assert len((tmp_path / "shipped" / "runs.jsonl").read_text().splitlines()) == 3
     assert len(shipped["summary"]["power"]) == 2 and shipped["summary"]["clean"][0]["runs"] == 1
+
+
+def test_the_drift_null_script_flags_what_the_analysis_flags(tmp_path: Path) -> None:
+    """``scripts/residual_drift_null.py`` reads the first samples the study records
+    (``exploratory_tasks``), applies the analysis' own start-force test, and counts it; a bad
+    ``--seeds`` is one line and exit 2."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        from residual_drift_null import first_samples
+    finally:
+        sys.path.pop(0)
+    from peel_residual.analysis import start_force_drift
+    from peel_sim_node.config import load_sim_config
+    from peel_sim_node.episode import exploratory_tasks
+
+    tasks = exploratory_tasks(load_sim_config(), source="plant", n=3, seed=41)
+    assert first_samples(41, 3, None).tolist() == [[t.fx[0], t.fz[0]] for t in tasks]
+    start = first_samples(41, 12, None)
+    drifting = start + np.outer(0.4 * np.arange(12), [1.0, 0.0])  # +0.4 N per task on F_RX
+    flags = start_force_drift(drifting, 0.01)
+    assert flags[0]["drift"] and flags[0]["slope_n_per_task"] == pytest.approx(0.4, abs=0.2)
+    script = [sys.executable, str(ROOT / "scripts" / "residual_drift_null.py")]
+    bad = subprocess.run([*script, "--out", str(tmp_path / "bad"), "--seeds", "5:5"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "empty range '5:5'" in bad.stderr
+    proc = subprocess.run([*script, "--out", str(tmp_path), "--seeds", "41:44", "--tasks", "12"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    row = json.loads((tmp_path / "drift_null.json").read_text())["rows"][0]
+    assert row["n_tasks"] == 12 and row["seeds"] == 3 and row["alpha"] == 0.01
+    expect = [start_force_drift(first_samples(s, 12, None), 0.01) for s in (41, 42, 43)]
+    assert [r["p"] for r in row["runs"]] == [[f["p"] for f in e] for e in expect]
+    assert row["flagged"]["either"] == sum(any(f["drift"] for f in e) for e in expect)
+    assert "| 12 | 3 | 0.01 |" in (tmp_path / "drift_null.md").read_text()

@@ -219,36 +219,48 @@ def _end_residual(model: Any, hz: Horizons) -> tuple[np.ndarray, np.ndarray]:
     return err[keep, end[keep]], keep
 
 
+def start_force_drift(start: np.ndarray, alpha: float) -> list[dict[str, Any]]:
+    """Per force channel (columns of ``start``, one row per task in recording order, N): does
+    the measured force at each task's first sample change with the task order? The blade is
+    at rest at C there, the same state in every task, so an offset shows whole
+    (:func:`~.structure.drift_across_tasks`): on the task order alone, and, when the other
+    channel shows no drift of its own, also with the other channel's first sample as covariate
+    (it takes out the task-to-task variation both share; with a drifting covariate it would lend
+    this channel the other's drift); the smaller p-value, Bonferroni-corrected for the two
+    tests."""
+    order = np.arange(len(start))
+    plain = [drift_across_tasks(start[:, i], order, alpha) for i in range(2)]
+    out = []
+    for i in range(2):
+        flag = dict(plain[i], statistic="start_force")
+        other_p = plain[1 - i]["p"]
+        if other_p is not None and other_p >= alpha:
+            cov = drift_across_tasks(start[:, i], order, alpha, start[:, 1 - i])
+            if cov["p"] is not None and cov["p"] < (plain[i]["p"] or 1.0):
+                flag = dict(cov, statistic="start_force_with_other_channel")
+            flag["p"] = min(1.0, 2 * flag["p"])
+            flag["drift"] = flag["p"] < alpha
+        out.append(flag)
+    return out
+
+
 def task_drift(model: Any, tasks: Sequence[Trajectory], h: int, cfg: ResidualConfig
                ) -> dict[str, dict[str, Any]]:
     """Per force channel: does the force change with the task order (every task, in recording
-    order)? Tested on the measured force at each task's first sample -- the blade at rest at C,
-    the same state in every task, so an offset shows whole (:func:`~.structure.drift_across_tasks`):
-    on the task order alone, and, when the other channel shows no drift of its own, also with
-    the other channel's first sample as covariate (it takes out the task-to-task variation both
-    share; with a drifting covariate it would lend this channel the other's drift); the smaller
-    p-value, Bonferroni-corrected for the two tests. Beside it, for the record, the same test on
-    the per-task mean open-loop residual at the horizon end (the model, fed its own forces, lets
-    go of part of an offset in its history; noisier on the plant)."""
-    order = np.arange(len(tasks))
+    order)? The flag is :func:`start_force_drift` on each task's first sample. Beside it, for
+    the record, the same test on the per-task mean open-loop residual at the horizon end (the
+    model, fed its own forces, lets go of part of an offset in its history; noisier on the
+    plant)."""
     start = np.array([[tr.fx[0], tr.fz[0]] for tr in tasks])
-    plain = [drift_across_tasks(start[:, i], order, cfg.drift_alpha) for i in range(2)]
+    flags = start_force_drift(start, cfg.drift_alpha)
     hz = horizons(tasks, h, cfg.horizon_steps, 2 * cfg.stride)
     err, keep = _end_residual(model, hz)
     ids = np.unique(hz.task[keep])
     out = {}
     for i, ch in enumerate(FORCE_CHANNELS):
-        flag = dict(plain[i], statistic="start_force")
-        other_p = plain[1 - i]["p"]
-        if other_p is not None and other_p >= cfg.drift_alpha:
-            cov = drift_across_tasks(start[:, i], order, cfg.drift_alpha, start[:, 1 - i])
-            if cov["p"] is not None and cov["p"] < (plain[i]["p"] or 1.0):
-                flag = dict(cov, statistic="start_force_with_other_channel")
-            flag["p"] = min(1.0, 2 * flag["p"])
-            flag["drift"] = flag["p"] < cfg.drift_alpha
         per_task = np.array([err[hz.task[keep] == g, i].mean() for g in ids])
-        out[ch] = {**flag, "open_loop_residual": drift_across_tasks(per_task, ids,
-                                                                    cfg.drift_alpha)}
+        out[ch] = {**flags[i], "open_loop_residual": drift_across_tasks(per_task, ids,
+                                                                        cfg.drift_alpha)}
     return out
 
 
