@@ -66,7 +66,8 @@ def _tasks(source: str, n: int, seed: int, level: int | None) -> tuple[Any, ...]
 
 
 @lru_cache(maxsize=1)
-def _model_and_config(path: str | None, open_loop_fit: bool) -> tuple[Any, Any]:
+def _model_and_config(path: str | None, open_loop_fit: bool, heldout_alpha: float
+                      ) -> tuple[Any, Any]:
     import torch
 
     from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
@@ -74,7 +75,7 @@ def _model_and_config(path: str | None, open_loop_fit: bool) -> tuple[Any, Any]:
 
     torch.set_num_threads(1)
     return (load_checkpoint(path or shipped_checkpoint()),
-            load_residual_config(open_loop_fit=open_loop_fit))
+            load_residual_config(open_loop_fit=open_loop_fit, heldout_alpha=heldout_alpha))
 
 
 def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | None
@@ -104,11 +105,11 @@ def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | No
             "epochs_run": metrics["epochs_run"]}
 
 
-def _run(args: tuple[Any, str, int | None, int, str | None, bool]) -> dict[str, Any]:
+def _run(args: tuple[Any, str, int | None, int, str | None, bool, float]) -> dict[str, Any]:
     from peel_residual.study import run_job
 
-    job, source, level, fresh, model_path, open_loop_fit = args
-    model, cfg = _model_and_config(model_path, open_loop_fit)
+    job, source, level, fresh, model_path, open_loop_fit, heldout_alpha = args
+    model, cfg = _model_and_config(model_path, open_loop_fit, heldout_alpha)
     return run_job(job, _tasks(source, job.n_tasks, job.data_seed, level),
                    _tasks(source, fresh, FRESH_SEED + job.seed, level), model, cfg)
 
@@ -134,6 +135,9 @@ def main(argv: list[str]) -> int:
                    help=f"Adam rate of --adapt's fine-tuning (default {ADAPT_LR:g})")
     p.add_argument("--open-loop-fit", action="store_true",
                    help="analyse with the output-error fit (residual.open_loop_fit: true)")
+    p.add_argument("--heldout-alpha", type=float_arg(0.0, 0.5), default=0.0,
+                   help="residual.heldout_alpha: the held-out tasks' paired test of each kept "
+                        "term (0: off, the default)")
     p.add_argument("--workers", type=positive_int, default=1)
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -158,7 +162,8 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     if args.adapt:
         model = _adapt(args.out, args.adapt, args.adapt_lr, args.source, args.seed, args.level)
         path = str(args.out / "adapted.safetensors")
-    work = [(j, args.source, args.level, args.fresh, path, args.open_loop_fit) for j in jobs]
+    work = [(j, args.source, args.level, args.fresh, path, args.open_loop_fit,
+             args.heldout_alpha) for j in jobs]
     records: list[dict[str, Any]] = []
     with tqdm(total=len(jobs), desc="residual study", unit="run",
               disable=args.no_progress) as bar, open(args.out / "runs.jsonl", "w") as log:
@@ -180,7 +185,8 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     command = "scripts/residual_study.py " + " ".join(shlex.quote(a) for a in argv)
     (args.out / "study.json").write_text(json.dumps(
         {"command": command, "source": args.source, "level": args.level, "seed": args.seed,
-         "model": model, "open_loop_fit": args.open_loop_fit, "summary": summary,
+         "model": model, "open_loop_fit": args.open_loop_fit,
+         "heldout_alpha": args.heldout_alpha, "summary": summary,
          "runs": records}, indent=1) + "\n")
     (args.out / "study.md").write_text(markdown(summary, command))
     print(json.dumps(summary, indent=1))

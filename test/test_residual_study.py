@@ -25,7 +25,7 @@ from peel_model.effect_terms import Candidate, Term
 from peel_residual.analysis import corrected_model, task_drift
 from peel_residual.config import load_residual_config
 from peel_residual.data import horizons
-from peel_residual.decide import held_out_decision, open_loop_rmse
+from peel_residual.decide import consistency_check, held_out_decision, holm_pass, open_loop_rmse
 from peel_residual.inject import SHAPE_RANGES, TASK_OFFSET, Injection, draw
 from peel_residual.study import CLEAN, Job, plan_jobs, run_job, summarise
 
@@ -133,6 +133,28 @@ def test_a_term_that_worsens_the_held_out_open_loop_is_never_kept(plant10, model
     after = open_loop_rmse(corrected_model(model, kept, 0.1), hz)
     assert all(after[ch] <= base[ch] for ch in base)
     assert after["fz"] < base["fz"]
+
+
+def test_holm_step_down_passes_in_order_of_p() -> None:
+    p = np.array([0.04, 0.01, 0.02])
+    assert holm_pass(p, 0.05, 3).tolist() == [True, True, True]  # 0.01<=.0167 .02<=.025 .04<=.05
+    assert holm_pass(np.array([0.03, 0.01]), 0.05, 3).tolist() == [False, True]  # 0.03 > 0.025
+    assert not holm_pass(np.array([0.02, 0.03]), 0.05, 3).any()  # smallest 0.02 > 0.0167
+
+
+def test_a_term_must_help_consistently_across_the_held_out_tasks(plant10, model) -> None:
+    """``residual.heldout_alpha``: the true +1.5 N F_RZ offset lowers every held-out task's
+    open-loop error; on 6 held-out tasks that passes at 0.05 (p = 1/64), on 3 it cannot
+    (the smallest p is 1/8) and the term is dropped with the test named."""
+    data = Injection("sensor_offset", "fz", 1.5).apply(plant10)
+    good = Term(Candidate("sensor_offset"), "fz", (1.5,))
+    hz6 = horizons(data[:6], model.h, 25, 5)
+    kept, dropped = consistency_check(model, [good], hz6, 0.1, 0.05)
+    assert kept == [good] and dropped == []
+    hz3 = horizons(data[:3], model.h, 25, 5)
+    kept, dropped = consistency_check(model, [good], hz3, 0.1, 0.05)
+    assert kept == [] and [t for t, _ in dropped] == [good]
+    assert "consistently across the 3 held-out tasks (Wilcoxon p = 0.125" in dropped[0][1]
 
 
 def _study_script(out: Path, *extra: str) -> subprocess.CompletedProcess:

@@ -37,7 +37,7 @@ from . import output_error as OE
 from . import predict as P
 from .config import ResidualConfig
 from .data import Horizons, Steps, horizons, one_step_samples
-from .decide import held_out_decision
+from .decide import consistency_check, held_out_decision
 from .structure import (
     Structure,
     drift_across_tasks,
@@ -315,8 +315,11 @@ def analyse(tasks: Sequence[Trajectory], model: Any, cfg: ResidualConfig, *,
         traces[VELOCITY_CHANNEL], plots[VELOCITY_CHANNEL] = speed, vplot
     tick(STAGES[1])
     hold = [tasks[i] for i in hold_idx]
-    terms, dropped = held_out_decision(model, terms_of(traces),
-                                       horizons(hold, h, cfg.horizon_steps, cfg.stride), dt_s)
+    hz_hold = horizons(hold, h, cfg.horizon_steps, cfg.stride)
+    terms, dropped = held_out_decision(model, terms_of(traces), hz_hold, dt_s)
+    if cfg.heldout_alpha > 0:
+        terms, inconsistent = consistency_check(model, terms, hz_hold, dt_s, cfg.heldout_alpha)
+        dropped = [*dropped, *inconsistent]
     apply_decision(traces, dropped)
     corrected = corrected_model(model, terms, dt_s) if terms else None
     after_model = corrected if corrected is not None else model

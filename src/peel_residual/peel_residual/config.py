@@ -33,6 +33,7 @@ class ResidualConfig:
     open_loop_fit: bool = False
     open_loop_fit_steps: int = 0
     open_loop_fit_stride: int = 10
+    heldout_alpha: float = 0.0
     candidates: tuple[Candidate, ...] = ()
 
     @classmethod
@@ -66,6 +67,7 @@ class ResidualConfig:
                    open_loop_fit=p["open_loop_fit"],
                    open_loop_fit_steps=p["open_loop_fit_steps"],
                    open_loop_fit_stride=p["open_loop_fit_stride"],
+                   heldout_alpha=p["heldout_alpha"],
                    candidates=tuple(candidates_from_grid(grid)))
 
 

@@ -25,24 +25,74 @@ from typing import Any
 import numpy as np
 
 from peel_model.compensated import corrected_model
-from peel_model.effect_terms import CHANNELS, FORCE_CHANNELS, VELOCITY_CHANNEL, Term
+from peel_model.effect_terms import CHANNELS, FORCE_CHANNELS, Term
 
 from . import predict as P
 from .data import Horizons
 
 
+def open_loop_errors(model: Any, hz: Horizons) -> np.ndarray:
+    """Open-loop errors ``[n, S, 3]`` in the order of :data:`CHANNELS` (``fx``, ``fz`` N;
+    ``v`` mm/s), NaN where a step is not valid."""
+    pred = P.open_loop(model, hz)
+    err = np.stack([hz.rows[:, -hz.steps:, 2 + i] - pred[:, :, i]
+                    for i in range(len(FORCE_CHANNELS))]
+                   + [hz.rows[:, -hz.steps:, 1] - P.speed_open_loop(model, hz)], axis=-1)
+    return np.where(hz.valid[:, :, None] & np.isfinite(err), err, np.nan)
+
+
 def open_loop_rmse(model: Any, hz: Horizons) -> dict[str, float]:
     """Held-out open-loop RMSE per channel (``fx``, ``fz`` N; ``v`` mm/s)."""
+    err = open_loop_errors(model, hz)
     out = {}
-    valid = hz.valid
-    pred = P.open_loop(model, hz)
-    for i, ch in enumerate(FORCE_CHANNELS):
-        err = (hz.rows[:, -hz.steps:, 2 + i] - pred[:, :, i])[valid]
-        out[ch] = float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0
-    err = (hz.rows[:, -hz.steps:, 1] - P.speed_open_loop(model, hz))[valid]
-    err = err[np.isfinite(err)]
-    out[VELOCITY_CHANNEL] = float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0
+    for i, ch in enumerate(CHANNELS):
+        e = err[:, :, i][np.isfinite(err[:, :, i])]
+        out[ch] = float(np.sqrt(np.mean(e ** 2))) if e.size else 0.0
     return out
+
+
+def per_task_sse(model: Any, hz: Horizons) -> np.ndarray:
+    """Open-loop SSE ``[tasks, 3]`` of each task of ``hz`` (in ``np.unique`` order) per channel."""
+    sq = np.nan_to_num(open_loop_errors(model, hz) ** 2).sum(axis=1)
+    return np.stack([sq[hz.task == j].sum(axis=0) for j in np.unique(hz.task)])
+
+
+def holm_pass(p: np.ndarray, alpha: float, m: int) -> np.ndarray:
+    """Holm's step-down over ``m`` hypotheses of which ``p`` are those still tested: the i-th
+    smallest passes if it and every smaller one lie at or below alpha / (m - i)."""
+    order = np.argsort(p, kind="stable")
+    ok = np.cumprod([p[j] <= alpha / (m - i) for i, j in enumerate(order)]).astype(bool)
+    out = np.zeros(len(p), dtype=bool)
+    out[order] = ok
+    return out
+
+
+def consistency_check(model: Any, terms: Sequence[Term], hz: Horizons, dt_s: float,
+                      alpha: float) -> tuple[list[Term], list[tuple[Term, str]]]:
+    """(kept, [(dropped, reason)]): the held-out tasks' paired test of the module docstring."""
+    from scipy.stats import wilcoxon
+
+    def sse(ts: Sequence[Term]) -> np.ndarray:
+        return per_task_sse(corrected_model(model, ts, dt_s) if ts else model, hz)
+
+    base = sse([]).sum(axis=0)
+    w = np.where(base > 0, 1.0 / np.where(base > 0, base, 1.0), 0.0)
+    current, dropped, m0 = list(terms), [], len(terms)
+    while current:
+        full = sse(current)
+        p = np.ones(len(current))
+        for i, term in enumerate(current):
+            d = ((sse([t for t in current if t is not term]) - full) * w).sum(axis=1)
+            if np.any(d != 0):
+                p[i] = float(wilcoxon(d, alternative="greater").pvalue)
+        if holm_pass(p, alpha, m0).all():
+            break
+        worst = int(np.argmax(p))
+        dropped.append((current.pop(worst),
+                        f"does not lower the held-out open-loop error consistently across the "
+                        f"{len(full)} held-out tasks (Wilcoxon p = {p[worst]:.3f}, Holm over "
+                        f"{m0} terms at {alpha:g})"))
+    return current, dropped
 
 
 def held_out_decision(model: Any, terms: Sequence[Term], hz: Horizons, dt_s: float

@@ -58,6 +58,10 @@ RESIDUAL_SPECS: tuple[ParamSpec, ...] = (
               "model steps of each output-error run; 0 = the planner's horizon", min=0, max=1000),
     ParamSpec("residual.open_loop_fit_stride", int, 10, "samples between output-error starts",
               min=1),
+    ParamSpec("residual.heldout_alpha", float, 0.0,
+              "0: off; else a kept term must lower the held-out open-loop error consistently "
+              "across the held-out tasks (Wilcoxon, Holm, at this level; needs >= 5 of them)",
+              min=0.0, max=0.5),
     ParamSpec("residual.families", list, list(FAMILY_NAMES), "candidate families"),
     *(ParamSpec(f"residual.{name}", list, list(grid), f"shape parameters of {fam}")
       for name, (fam, grid) in GRIDS.items()),

@@ -147,6 +147,7 @@ def build_json(result: Result, tasks: list[Trajectory], cfg: ResidualConfig,
                      "drift_alpha": cfg.drift_alpha, "open_loop_fit": cfg.open_loop_fit,
                      "open_loop_fit_steps": cfg.open_loop_fit_steps or cfg.horizon_steps,
                      "open_loop_fit_stride": cfg.open_loop_fit_stride,
+                     "heldout_alpha": cfg.heldout_alpha,
                      "candidates": [c.key for c in cfg.candidates]},
         "figures": {"rmse": figures["rmse"], "open_loop_error": figures["horizon"]},
     }
