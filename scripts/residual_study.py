@@ -9,7 +9,9 @@
 Clean tasks are recorded once per data seed with the plant's episode generator under
 exploratory command profiles (``peel_sim_node.episode.exploratory_tasks``, as
 ``scripts/residual_scenarios.py``); each effect job adds one drawn effect to them on the
-measurement side and runs the analysis of ``peel residual`` with the shipped model
+measurement side (a speed family: records them again from the same seeds with the drawn speed
+error in the plant, ``peel_sim_node.example_effects.SpeedError``) and runs the analysis of
+``peel residual`` with the shipped model
 (``peel_residual.study``, docs/residual.md "Power and false-alarm rate"). The
 fresh tasks (``--fresh`` per task count, their own data seed) are never analysed: the corrected
 model is scored on them with the same effect. Writes ``DIR/runs.jsonl`` (each run as it ends),
@@ -57,12 +59,17 @@ ADAPT_LR = 1e-3
 
 
 @lru_cache(maxsize=8)
-def _tasks(source: str, n: int, seed: int, level: int | None) -> tuple[Any, ...]:
+def _tasks(source: str, n: int, seed: int, level: int | None,
+           speed_error: tuple[float, float] | None = None) -> tuple[Any, ...]:
+    """``n`` clean tasks of data seed ``seed``; with ``speed_error`` = (scale, offset mm/s)
+    the same tasks recorded with the robot at u * scale + offset (a plant-side speed draw)."""
     from peel_sim_node.config import load_sim_config
     from peel_sim_node.episode import exploratory_tasks
+    from peel_sim_node.example_effects import SpeedError
 
+    effects = [SpeedError(*speed_error)] if speed_error else []
     return tuple(exploratory_tasks(load_sim_config(), source=source, n=n, seed=seed,
-                                   level=level if source == "plant" else None))
+                                   effects=effects, level=level if source == "plant" else None))
 
 
 @lru_cache(maxsize=1)
@@ -110,8 +117,10 @@ def _run(args: tuple[Any, str, int | None, int, str | None, bool, float]) -> dic
 
     job, source, level, fresh, model_path, open_loop_fit, heldout_alpha = args
     model, cfg = _model_and_config(model_path, open_loop_fit, heldout_alpha)
-    return run_job(job, _tasks(source, job.n_tasks, job.data_seed, level),
-                   _tasks(source, fresh, FRESH_SEED + job.seed, level), model, cfg)
+    inj = job.injection()
+    speed = inj.speed_error() if inj is not None and inj.plant_side else None
+    return run_job(job, _tasks(source, job.n_tasks, job.data_seed, level, speed),
+                   _tasks(source, fresh, FRESH_SEED + job.seed, level, speed), model, cfg)
 
 
 def main(argv: list[str]) -> int:

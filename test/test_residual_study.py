@@ -26,8 +26,9 @@ from peel_residual.analysis import corrected_model, task_drift
 from peel_residual.config import load_residual_config
 from peel_residual.data import horizons
 from peel_residual.decide import consistency_check, held_out_decision, holm_pass, open_loop_rmse
-from peel_residual.inject import SHAPE_RANGES, TASK_OFFSET, Injection, draw
+from peel_residual.inject import SHAPE_RANGES, SPEED_RANGES, TASK_OFFSET, Injection, draw
 from peel_residual.study import CLEAN, Job, plan_jobs, run_job, summarise
+from peel_sim_node.example_effects import SpeedError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,9 +66,17 @@ def test_draws_are_seeded_and_inside_the_stated_ranges() -> None:
                 assert lo <= v <= hi
             assert abs(x.amplitude_n) == 1.5 or (fam == TASK_OFFSET
                                                  and 0.3 <= abs(x.amplitude_n) <= 0.5)
-    jobs = plan_jobs(["viscous_drag", TASK_OFFSET], [1.0, 2.0], [10], draws=2, clean=3, seed=5)
+    for fam, (lo, hi) in SPEED_RANGES.items():
+        a = [draw(fam, 1.5, np.random.default_rng([7, i])) for i in range(20)]
+        assert a == [draw(fam, 1.5, np.random.default_rng([7, i])) for i in range(20)]
+        assert {x.channel for x in a} == {"v"} and all(x.plant_side for x in a)
+        assert all(lo <= abs(x.amplitude_n) <= hi for x in a)
+        assert {np.sign(x.amplitude_n) for x in a} == {-1.0, 1.0}
+    jobs = plan_jobs(["viscous_drag", TASK_OFFSET, "speed_scale"], [1.0, 2.0], [10], draws=2,
+                     clean=3, seed=5)
     assert [j.family for j in jobs].count(CLEAN) == 3
-    assert [j.family for j in jobs].count(TASK_OFFSET) == 2  # once per task count, not per amp
+    for fam in (TASK_OFFSET, "speed_scale"):  # once per task count, not per amplitude
+        assert [j.family for j in jobs].count(fam) == 2
     assert len({j.index for j in jobs}) == len(jobs)
 
 
@@ -93,6 +102,28 @@ def test_a_drawn_effect_is_named(plant10, fresh, model, cfg) -> None:
     ch = inj["channel"]
     assert rec["heldout_open_loop_ratio"][ch] < 0.9
     assert rec["fresh_open_loop_ratio"][ch] < 0.9  # on tasks the analysis never saw
+
+
+def test_a_drawn_speed_error_is_recorded_in_the_plant_and_named(model, cfg) -> None:
+    """A speed draw is not a rewrite of the data: the tasks are recorded with the robot at
+    u (1 + s), the forces answer the speed it really has, and the family is named on v."""
+    job = Job(1, "speed_scale", 0.0, 10, 31, 3)
+    inj = job.injection()
+    assert inj.speed_error() == (pytest.approx(1.0 + inj.amplitude_n), 0.0)
+    assert 0.05 <= abs(inj.amplitude_n) <= 0.30
+    with pytest.raises(ValueError, match="acts in the plant"):
+        inj.apply(generate_tasks("plant", n=1, seed=31))
+    slip = [SpeedError(*inj.speed_error())]
+    tasks = generate_tasks("plant", slip, n=10, seed=31)
+    clean = generate_tasks("plant", n=10, seed=31)
+    for a, b in zip(tasks, clean, strict=True):  # the same commands (to the last sample), ...
+        n = min(len(a), len(b)) - 1
+        assert np.array_equal(a.u[:n], b.u[:n])
+        assert not np.allclose(a.q[1:n], b.q[1:n])  # ... another motion
+    rec = run_job(job, tasks, generate_tasks("plant", slip, n=3, seed=41), model, cfg)
+    assert rec["detected"] and "speed_scale@v" in rec["named_families"], rec
+    assert "fresh_open_loop_ceiling" not in rec  # exact for measurement-side effects only
+    assert rec["fresh_open_loop_ratio"]["v"] < 1.0
 
 
 def test_a_between_task_drift_is_flagged(plant10, fresh, model, cfg) -> None:

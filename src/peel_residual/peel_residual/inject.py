@@ -21,8 +21,13 @@ Amplitude A (N): g = +-A s(x), the shape s scaled to |s| <= 1 over the data's ra
   task (:data:`TASK_OFFSET_RANGE_N`): a drift of the force zero from one task to the next (pad
   wear, sensor zero drift between tasks), centred on the data's mean level.
 
-Speed families (actuator lag, scale, offset) are not drawn: the level-3 plant's own actuator
-lag is named on every clean run, so a measurement-side speed effect has no clean baseline.
+The speed families ``speed_scale`` and ``speed_offset`` are drawn on the *plant* side, not the
+measurement side: the robot moves at u (1 + s) or u + c (:data:`SPEED_RANGES`, sign drawn), so
+the forces respond to the speed it really has and the tasks are recorded with the effect in the
+plant (:meth:`Injection.speed_error`; the study script passes it to the plant as
+``peel_sim_node.example_effects.SpeedError``). A rewrite of the measured speed would instead be
+a speed sensor error, which the forces would contradict. ``actuator_lag`` is not drawn: the
+level-3 plant's own lag is named on every clean run, so it has no clean baseline.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from peel_model.effect_terms import FAMILIES, FORCE_CHANNELS
+from peel_model.effect_terms import FAMILIES, FORCE_CHANNELS, VELOCITY_CHANNEL
 from peel_msgs_py.trajectory import Trajectory
 
 #: The exploratory profiles' top speed (mm/s): drag terms reach A there.
@@ -58,22 +63,44 @@ SHAPE_RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "hysteresis": {"dv0_mmps": (0.1, 0.6)}, "cross_talk": {},
 }
 
+#: Plant-side speed effects: |s| of ``speed_scale`` (a relative error: 5-30 %, an axis
+#: calibration error up to a slipping gripper) and |c| of ``speed_offset`` (mm/s, 2-80 % of the
+#: 0.5-6 mm/s peel speeds), uniform, sign drawn.
+SPEED_RANGES: dict[str, tuple[float, float]] = {"speed_scale": (0.05, 0.30),
+                                                "speed_offset": (0.1, 0.4)}
+
 #: The between-task offset's step, N per task (uniform).
 TASK_OFFSET_RANGE_N: tuple[float, float] = (0.3, 0.5)
 #: The name of the between-task family (not a candidate term: a verdict, docs/residual.md).
 TASK_OFFSET = "task_offset"
 #: Every family the study draws.
-STUDY_FAMILIES: tuple[str, ...] = (*SHAPE_RANGES, TASK_OFFSET)
+STUDY_FAMILIES: tuple[str, ...] = (*SHAPE_RANGES, TASK_OFFSET, *SPEED_RANGES)
+#: The families drawn with their size, not at the study's amplitudes.
+DRAWN_SIZE: tuple[str, ...] = (TASK_OFFSET, *SPEED_RANGES)
 
 
 @dataclass(frozen=True)
 class Injection:
-    """One drawn effect: family, channel, signed amplitude (N, or N per task) and shape."""
+    """One drawn effect: family, channel, signed amplitude (N, or N per task; for a speed
+    family s or c, :data:`SPEED_RANGES`) and shape."""
 
     family: str
     channel: str
     amplitude_n: float
     shape: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def plant_side(self) -> bool:
+        """A speed effect: recorded in the plant, not added to the measurements."""
+        return self.family in SPEED_RANGES
+
+    def speed_error(self) -> tuple[float, float]:
+        """(scale, offset mm/s) of the robot's speed u * scale + offset (module docstring)."""
+        if not self.plant_side:
+            raise ValueError(f"{self.family} is a force effect, added to the measurements")
+        if self.family == "speed_scale":
+            return 1.0 + self.amplitude_n, 0.0
+        return 1.0, self.amplitude_n
 
     def to_json(self) -> dict[str, Any]:
         return {"family": self.family, "channel": self.channel,
@@ -81,6 +108,9 @@ class Injection:
 
     def apply(self, tasks: Sequence[Trajectory]) -> list[Trajectory]:
         """The tasks with this effect added to the measured force of :attr:`channel`."""
+        if self.plant_side:
+            raise ValueError(f"{self.family} acts in the plant: record the tasks with "
+                             "speed_error(), do not rewrite them")
         ch = FORCE_CHANNELS.index(self.channel)
         other = "fz" if ch == 0 else "fx"
         f_ref = float(np.mean(np.abs(np.concatenate([getattr(t, other) for t in tasks]))))
@@ -129,13 +159,16 @@ def shape_of(family: str, p: dict[str, float], *, v: np.ndarray, q: np.ndarray, 
 
 
 def draw(family: str, amplitude_n: float, rng: np.random.Generator) -> Injection:
-    """An effect of ``family`` at ``amplitude_n`` (N; for ``task_offset`` ignored, its step
-    drawn from :data:`TASK_OFFSET_RANGE_N`): sign, channel and shape drawn."""
+    """An effect of ``family`` at ``amplitude_n`` (N; ignored for :data:`DRAWN_SIZE`, whose
+    size is drawn from :data:`TASK_OFFSET_RANGE_N` or :data:`SPEED_RANGES`): sign, channel and
+    shape drawn (a speed family acts on the speed channel ``v``)."""
     if family not in STUDY_FAMILIES:
         raise ValueError(f"unknown study family {family!r} (known: {', '.join(STUDY_FAMILIES)})")
     assert family == TASK_OFFSET or family in FAMILIES
     channel = FORCE_CHANNELS[int(rng.integers(2))]
     sign = 1.0 if rng.random() < 0.5 else -1.0
+    if family in SPEED_RANGES:
+        return Injection(family, VELOCITY_CHANNEL, sign * float(rng.uniform(*SPEED_RANGES[family])))
     if family == TASK_OFFSET:
         return Injection(family, channel, sign * float(rng.uniform(*TASK_OFFSET_RANGE_N)))
     shape = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in SHAPE_RANGES[family].items()}

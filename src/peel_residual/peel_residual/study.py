@@ -6,7 +6,10 @@ depend on how many workers run them or in which order):
 * an **effect job** draws one effect (:func:`~.inject.draw`: family given, amplitude given,
   sign, channel and shape drawn from ``[seed, index]``) and adds it, measurement side, to a
   clean task set (:meth:`~.inject.Injection.apply`);
-* a **clean job** analyses a clean task set as it is.
+* a **clean job** analyses a clean task set as it is;
+* a **speed job** (``speed_scale``, ``speed_offset``) draws a plant-side speed error
+  (:meth:`~.inject.Injection.speed_error`): its caller records the task set, and the fresh
+  tasks, in the plant with that error, from the same seeds as the clean set.
 
 Each job runs :func:`~.analysis.analyse` (held-out tasks inside it, as ``peel residual`` does)
 and records (:func:`run_job`): what was named, the per-channel verdicts, the held-out open-loop
@@ -37,7 +40,7 @@ from .analysis import analyse
 from .config import ResidualConfig
 from .data import horizons
 from .decide import open_loop_rmse
-from .inject import TASK_OFFSET, Injection, draw
+from .inject import DRAWN_SIZE, SPEED_RANGES, TASK_OFFSET, Injection, draw
 
 CLEAN = "clean"
 
@@ -62,14 +65,15 @@ class Job:
 
 def plan_jobs(families: Sequence[str], amplitudes: Sequence[float], n_tasks: Sequence[int],
               draws: int, clean: int, seed: int) -> list[Job]:
-    """``draws`` effect jobs per (family, amplitude, task count) -- a between-task offset once
-    per task count, its step drawn -- and ``clean`` clean jobs per task count. Draw ``d`` uses
+    """``draws`` effect jobs per (family, amplitude, task count) -- a between-task offset and
+    a speed family once per task count, their size drawn -- and ``clean`` clean jobs per task
+    count. Draw ``d`` uses
     the clean task set with data seed ``seed * 1000 + d``; clean job ``c`` uses data seed
     ``seed * 1000 + c``: the effects are added to the same recordings that are analysed clean."""
     jobs: list[Job] = []
     for n in n_tasks:
         for fam in families:
-            for amp in ([0.0] if fam == TASK_OFFSET else amplitudes):
+            for amp in ([0.0] if fam in DRAWN_SIZE else amplitudes):
                 for d in range(draws):
                     jobs.append(Job(len(jobs), fam, float(amp), int(n), seed * 1000 + d, seed))
         for c in range(clean):
@@ -84,9 +88,11 @@ def _ratio(after: float | None, before: float | None) -> float | None:
 def run_job(job: Job, tasks: Sequence[Trajectory], fresh: Sequence[Trajectory], model: Any,
             cfg: ResidualConfig, dt_s: float = 0.1) -> dict[str, Any]:
     """Inject, analyse, score one job (module docstring); ``fresh`` are clean tasks the
-    analysis never sees, given the same injection for the independent after / before."""
+    analysis never sees, given the same injection for the independent after / before. For a
+    plant-side injection ``tasks`` and ``fresh`` are already recorded with it."""
     inj = job.injection()
-    data = inj.apply(tasks) if inj else list(tasks)
+    rewrite = inj is not None and not inj.plant_side
+    data = inj.apply(tasks) if rewrite else list(tasks)
     t0 = time.perf_counter()
     r = analyse(data, model, cfg, dt_s=dt_s)
     wall = time.perf_counter() - t0
@@ -103,12 +109,12 @@ def run_job(job: Job, tasks: Sequence[Trajectory], fresh: Sequence[Trajectory], 
         "heldout_open_loop_rmse_before": {ch: r.rmse_before[ch]["open_loop"]
                                           for ch in (*FORCE_CHANNELS, "v")},
         "wall_s": round(wall, 2)}
-    hz = horizons(inj.apply(fresh) if inj else list(fresh), int(model.h), cfg.horizon_steps,
+    hz = horizons(inj.apply(fresh) if rewrite else list(fresh), int(model.h), cfg.horizon_steps,
                   cfg.stride)
     before = open_loop_rmse(model, hz)
     after = open_loop_rmse(r.corrected, hz) if r.corrected is not None else before
     rec["fresh_open_loop_ratio"] = {ch: _ratio(after[ch], before[ch]) for ch in before}
-    if inj is not None:
+    if rewrite:  # exact for a measurement-side effect only (ceiling)
         hold = [tasks[i] for i in r.holdout_tasks]
         rec["heldout_open_loop_ceiling"] = ceiling(model, hold, inj.apply(hold), cfg)
         rec["fresh_open_loop_ceiling"] = ceiling(model, fresh, inj.apply(fresh), cfg)
@@ -199,6 +205,16 @@ def _f(x: float | None, nd: int = 2) -> str:
     return "–" if x is None else f"{x:.{nd}f}"
 
 
+def _size(family: str, amplitude_n: float) -> str:
+    """The table's amplitude column: the drawn range for :data:`~.inject.DRAWN_SIZE`."""
+    if family == TASK_OFFSET:
+        return "0.3-0.5 N/task"
+    if family in SPEED_RANGES:
+        lo, hi = SPEED_RANGES[family]
+        return f"|s| {lo:g}-{hi:g}" if family == "speed_scale" else f"|c| {lo:g}-{hi:g} mm/s"
+    return f"{amplitude_n:g} N"
+
+
 def markdown(summary: dict[str, Any], command: str) -> str:
     """The power table and the false-alarm table."""
     L = ["# peel residual: power study", "", f"Command: `{command}`", "",
@@ -207,7 +223,7 @@ def markdown(summary: dict[str, Any], command: str) -> str:
          "| draws where 0.8 is reachable | detected among them | wall s (median) |",
          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for p in summary["power"]:
-        amp = "0.3-0.5 N/task" if p["family"] == TASK_OFFSET else f"{p['amplitude_n']:g} N"
+        amp = _size(p["family"], p["amplitude_n"])
         L.append(f"| {p['family']} | {amp} | {p['n_tasks']} | {p['draws']} | {p['detected']} | "
                  f"{p['detection_rate']:.0%} | {_f(p['median_heldout_ratio'])} | "
                  f"{_f(p['median_fresh_ratio'])} | {_f(p.get('median_fresh_ceiling'))} | "

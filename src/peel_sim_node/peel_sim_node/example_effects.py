@@ -8,6 +8,7 @@ the residual analysis is demonstrated and tested on; nothing else in peel uses t
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from .effects import EffectAction, EffectState
 
@@ -30,3 +31,16 @@ def hose_drag(s: EffectState) -> EffectAction:
 def grooved_pad(s: EffectState) -> EffectAction:
     """Extra hold-down from pad grooves 8 mm apart: 2 (1 + sin(2 pi q / 8 mm)) N."""
     return EffectAction(load_n=2.0 * (1.0 + math.sin(2.0 * math.pi * s.q_mm / 8.0)))
+
+
+@dataclass(frozen=True)
+class SpeedError:
+    """The robot moves at ``u * scale + offset_mmps``: an axis calibration error or a slip
+    (``scale``) and a constant speed error (``offset_mmps``, mm/s). A frozen value, so a drawn
+    one pickles to worker processes and keys a cache (the residual power study's speed draws)."""
+
+    scale: float = 1.0
+    offset_mmps: float = 0.0
+
+    def __call__(self, s: EffectState) -> EffectAction:
+        return EffectAction(v_scale=self.scale, v_offset_mmps=self.offset_mmps)
