@@ -196,7 +196,7 @@ def summarise(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
                                              for r, c in zip(rs, chs, strict=True)]),
             "median_fresh_ratio": _median([r["fresh_open_loop_ratio"][c]
                                            for r, c in zip(rs, chs, strict=True)]),
-            **_reach(rs, chs),
+            **({} if fam in SPEED_RANGES else _reach(rs, chs)),  # no exact ceiling in the plant
             "median_wall_s": _median([r["wall_s"] for r in rs])})
     return {"power": power, "clean": clean}
 
@@ -211,7 +211,7 @@ def _size(family: str, amplitude_n: float) -> str:
         return "0.3-0.5 N/task"
     if family in SPEED_RANGES:
         lo, hi = SPEED_RANGES[family]
-        return f"|s| {lo:g}-{hi:g}" if family == "speed_scale" else f"|c| {lo:g}-{hi:g} mm/s"
+        return f"x (1 ± {lo:g}-{hi:g})" if family == "speed_scale" else f"± {lo:g}-{hi:g} mm/s"
     return f"{amplitude_n:g} N"
 
 
