@@ -85,14 +85,16 @@ def _model_and_config(path: str | None, open_loop_fit: bool, heldout_alpha: floa
             load_residual_config(open_loop_fit=open_loop_fit, heldout_alpha=heldout_alpha))
 
 
-def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | None
-           ) -> dict[str, Any]:
-    """The shipped model fine-tuned on ``k`` clean tasks (module docstring, ``--adapt``)."""
+def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | None,
+           open_loop: bool = False) -> dict[str, Any]:
+    """The shipped model fine-tuned on ``k`` clean tasks (module docstring, ``--adapt``), then,
+    with ``open_loop``, on the same tasks with the open-loop loss (``--adapt-open-loop``)."""
     import torch
 
     from model_learner_node.config import load_train_config
     from model_learner_node.train import train_and_save
-    from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
+    from peel_model.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
+    from peel_residual.adapt import OpenLoopTune, open_loop_finetune
 
     torch.set_num_threads(1)
     tasks = list(_tasks(source, k, ADAPT_SEED + seed, level))
@@ -105,7 +107,17 @@ def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | No
                                                                 "data_seed": ADAPT_SEED + seed,
                                                                 "level": level}})
     path = out / "adapted.safetensors"
-    return {"adapted_on_tasks": k, "data_seed": ADAPT_SEED + seed, "lr": lr,
+    tuned: dict[str, Any] = {}
+    if open_loop:
+        ol = open_loop_finetune(load_checkpoint(path), tasks[:-6], tasks[-6:-2], OpenLoopTune())
+        save_checkpoint(out / "adapted", ol.model,
+                        {**json.loads((out / "adapted.json").read_text()).get("meta", {}),
+                         "open_loop_tuned": {"val_mse": ol.val_mse, "best_epoch": ol.best_epoch}})
+        tuned = {"open_loop_tuned": {"val_mse_before": ol.val_mse[0],
+                                     "val_mse_after": min(ol.val_mse),
+                                     "best_epoch": ol.best_epoch,
+                                     "epochs_run": len(ol.val_mse) - 1}}
+    return {"adapted_on_tasks": k, "data_seed": ADAPT_SEED + seed, "lr": lr, **tuned,
             "checkpoint": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
             "val_rmse_before": result.history[0]["val_rmse"],
             "val_rmse_after": result.best_val_rmse, "test_rmse": metrics["test_rmse"],
@@ -142,6 +154,9 @@ def main(argv: list[str]) -> int:
                         "(0: the shipped model; else at least 8)")
     p.add_argument("--adapt-lr", type=float_arg(1e-6, 1.0), default=ADAPT_LR,
                    help=f"Adam rate of --adapt's fine-tuning (default {ADAPT_LR:g})")
+    p.add_argument("--adapt-open-loop", action="store_true",
+                   help="after --adapt's one-step fine-tuning, fine-tune on the same tasks with "
+                        "the open-loop loss over the planner's horizon (peel_residual.adapt)")
     p.add_argument("--open-loop-fit", action="store_true",
                    help="analyse with the output-error fit (residual.open_loop_fit: true)")
     p.add_argument("--heldout-alpha", type=float_arg(0.0, 0.5), default=0.0,
@@ -156,6 +171,8 @@ def main(argv: list[str]) -> int:
         p.error(f"unknown families {unknown}; known: {', '.join(STUDY_FAMILIES)}")
     if 0 < args.adapt < 8:
         p.error(f"--adapt needs at least 8 tasks (train, 4 validate, 2 test), got {args.adapt}")
+    if args.adapt_open_loop and not args.adapt:
+        p.error("--adapt-open-loop needs --adapt K")
     return _study(args, families, argv)
 
 
@@ -169,7 +186,8 @@ def _study(args: Any, families: list[str], argv: list[str]) -> int:
     model: dict[str, Any] = {"checkpoint": "shipped"}
     path = None
     if args.adapt:
-        model = _adapt(args.out, args.adapt, args.adapt_lr, args.source, args.seed, args.level)
+        model = _adapt(args.out, args.adapt, args.adapt_lr, args.source, args.seed, args.level,
+                       args.adapt_open_loop)
         path = str(args.out / "adapted.safetensors")
     work = [(j, args.source, args.level, args.fresh, path, args.open_loop_fit,
              args.heldout_alpha) for j in jobs]
