@@ -3,7 +3,7 @@
 
     .venv/bin/python scripts/residual_study.py --out DIR [--families F,...]
         [--amplitudes 0.5,1,2] [--tasks 10,30] [--draws 20] [--clean 20] [--seed 1]
-        [--source plant|sim] [--level L] [--fresh 5] [--adapt K] [--open-loop-fit]
+        [--source plant|sim] [--level L] [--fresh 5] [--adapt K [--adapt-open-loop]] [--open-loop-fit]
         [--workers 1] [--no-progress]
 
 Clean tasks are recorded once per data seed with the plant's episode generator under
@@ -25,6 +25,9 @@ with the Adam rate ``--adapt-lr``; 4 tasks validate, 2 test), written to
 ``DIR/adapted.safetensors`` with its metrics and named in ``study.json`` (``model``). It stands
 for the cell's model after online learning on the plant: the plant's own difference is then in
 the model, not in the residual.
+With ``--adapt-open-loop`` that model is then fine-tuned on the same
+tasks with the loss of its own rollout over the planner's horizon (``peel_residual.adapt``), so
+that its open-loop drift on the plant is in the model too.
 """
 
 from __future__ import annotations

@@ -80,3 +80,17 @@ def test_the_study_analyses_with_the_open_loop_tuned_model(tmp_path: Path) -> No
     assert meta["adapted_on"]["tasks"] == 8  # the one-step fine-tuning's record is kept
     with safe_open(str(tmp_path / "ol" / "adapted.safetensors"), framework="pt") as f:
         assert f.keys()
+
+
+def test_the_model_gap_script_prints_each_models_open_loop_error() -> None:
+    cmd = [sys.executable, str(ROOT / "scripts" / "residual_model_gap.py"), "--seed", "3",
+           "--tasks", "1"]
+    bad = subprocess.run([*cmd, "--model", "x"], capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "--model 'x': expected NAME=CHECKPOINT" in bad.stderr
+    proc = subprocess.run([*cmd, "--model", "shipped"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    assert out["data_seed"] == 555_003 and out["shipped"]["checkpoint"] == "shipped"
+    rmse = out["shipped"]["rmse_over_horizon"]
+    assert len(rmse) == 2 and all(x > 0 for x in rmse)
