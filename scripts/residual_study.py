@@ -27,7 +27,10 @@ for the cell's model after online learning on the plant: the plant's own differe
 the model, not in the residual.
 With ``--adapt-open-loop`` that model is then fine-tuned on the same
 tasks with the loss of its own rollout over the planner's horizon (``peel_residual.adapt``), so
-that its open-loop drift on the plant is in the model too.
+that its open-loop drift on the plant is in the model too. ``adapted.safetensors`` is then the
+open-loop-tuned model, recorded under ``open_loop_tuned`` (in ``study.json``'s ``model`` and the
+checkpoint's meta); ``adapted.metrics.json`` and ``model``'s ``val_rmse_*`` / ``test_rmse``
+describe the one-step stage before it.
 """
 
 from __future__ import annotations
@@ -96,7 +99,12 @@ def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | No
 
     from model_learner_node.config import load_train_config
     from model_learner_node.train import train_and_save
-    from peel_model.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
+    from peel_model.checkpoint import (
+        load_checkpoint,
+        read_checkpoint_config,
+        save_checkpoint,
+        shipped_checkpoint,
+    )
     from peel_residual.adapt import OpenLoopTune, open_loop_finetune
 
     torch.set_num_threads(1)
@@ -114,7 +122,7 @@ def _adapt(out: Path, k: int, lr: float, source: str, seed: int, level: int | No
     if open_loop:
         ol = open_loop_finetune(load_checkpoint(path), tasks[:-6], tasks[-6:-2], OpenLoopTune())
         save_checkpoint(out / "adapted", ol.model,
-                        {**json.loads((out / "adapted.json").read_text()).get("meta", {}),
+                        {**read_checkpoint_config(path).get("meta", {}),
                          "open_loop_tuned": {"val_mse": ol.val_mse, "best_epoch": ol.best_epoch}})
         tuned = {"open_loop_tuned": {"val_mse_before": ol.val_mse[0],
                                      "val_mse_after": min(ol.val_mse),
