@@ -1,13 +1,17 @@
 #!/usr/bin/env python3
 """How far a model drifts open loop on clean plant tasks that no study analysed.
 
-    .venv/bin/python scripts/residual_model_gap.py --seed S --model NAME=CHECKPOINT ... [--tasks 20]
+    .venv/bin/python scripts/residual_model_gap.py --seed S --model NAME=CHECKPOINT ... \
+        [--tasks 20] [--level L]
 
-Records ``--tasks`` clean exploratory tasks of data seed :data:`GAP_SEED` + S (the study's
-generator, ``scripts/residual_study.py``; none of them is analysed, adapted on or fresh) and
+Records ``--tasks`` clean exploratory tasks of data seed :data:`GAP_SEED` + S on the plant at
+severity ``--level`` (default ``plant.level`` of config/peel_sim_node.yaml; 0 is the
+simulator) with the study's generator (``scripts/residual_study.py``; none of these tasks is
+analysed, adapted on or fresh there) and
 prints, as JSON, per model and force channel (fx, fz in N) the RMSE of the open-loop rollout
 over the planner's horizon (25 model steps, from every 5th sample, ``peel_residual.predict``),
-its RMSE at the horizon's end (2.5 s) and its mean there (the systematic drift).
+its RMSE at the horizon's end (2.5 s) and its mean there (the systematic drift: predicted minus
+measured, > 0 where the model over-predicts).
 ``--model shipped`` names the shipped checkpoint.
 """
 
@@ -44,6 +48,8 @@ def main(argv: list[str]) -> int:
     p = ArgumentParser(prog="residual_model_gap.py", description=__doc__.split("\n")[1])
     p.add_argument("--seed", type=nonnegative_int, required=True)
     p.add_argument("--tasks", type=int_arg(1), default=20)
+    p.add_argument("--level", type=int, choices=range(4), default=None, metavar="L",
+                   help="plant severity level 0-3 (default: plant.level)")
     p.add_argument("--model", action="append", required=True, metavar="NAME=CHECKPOINT")
     args = p.parse_args(argv)
     models = {}
@@ -60,9 +66,9 @@ def main(argv: list[str]) -> int:
     from residual_study import _tasks
 
     torch.set_num_threads(1)
-    tasks = list(_tasks("plant", args.tasks, GAP_SEED + args.seed, None))
+    tasks = list(_tasks("plant", args.tasks, GAP_SEED + args.seed, args.level))
     out: dict[str, Any] = {"tasks": args.tasks, "data_seed": GAP_SEED + args.seed,
-                           "channels": ["fx", "fz"]}
+                           "level": args.level, "channels": ["fx", "fz"]}
     for name, path in models.items():
         out[name] = {"checkpoint": path or "shipped",
                      **gap(load_checkpoint(path or shipped_checkpoint()), tasks)}

@@ -1,11 +1,13 @@
 """Open-loop fine-tuning of f_theta before the analysis (``peel_residual.adapt``).
 
 Clean level-3 plant tasks under exploratory command profiles (``residual_helpers``, seed 31,
-not the report's), the shipped model; the study script's ``--adapt-open-loop`` as a real process.
+not the report's), the shipped model; the study script's ``--adapt-open-loop`` and
+``scripts/open_loop_checkpoint.py`` as real processes.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -94,3 +96,43 @@ def test_the_model_gap_script_prints_each_models_open_loop_error() -> None:
     assert out["data_seed"] == 555_003 and out["shipped"]["checkpoint"] == "shipped"
     rmse = out["shipped"]["rmse_over_horizon"]
     assert len(rmse) == 2 and all(x > 0 for x in rmse)
+    assert out["level"] is None  # plant.level of the config
+    bad_level = subprocess.run([*cmd, "--level", "4", "--model", "shipped"], capture_output=True,
+                               text=True, timeout=300)
+    assert bad_level.returncode == 2 and "--level" in bad_level.stderr
+    sim = subprocess.run([*cmd, "--level", "0", "--model", "shipped"], capture_output=True,
+                         text=True, timeout=300)
+    assert sim.returncode == 0, sim.stderr[-2000:]
+    on_sim = json.loads(sim.stdout)
+    assert on_sim["level"] == 0 and on_sim["shipped"]["rmse_over_horizon"] != rmse
+
+
+def _tune(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "open_loop_checkpoint.py"),
+                           "--threads", "1", *args], capture_output=True, text=True, timeout=600)
+
+
+def test_the_open_loop_checkpoint_script_writes_a_tuned_model(tmp_path: Path) -> None:
+    bad = _tune("--data", str(tmp_path / "none"), "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "is not a complete peel dataset" in bad.stderr
+    assert not list(tmp_path.glob("x*"))
+    ds = tmp_path / "ds"
+    gen = subprocess.run([sys.executable, "-m", "peel_bringup.cli", "dataset", "--param-sets",
+                          "3", "--per-set", "2", "--seed", "4", "--out", str(ds),
+                          "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert gen.returncode == 0, gen.stderr[-2000:]
+    proc = _tune("--data", str(ds), "--out", str(tmp_path / "tuned"), "--epochs", "3")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    assert len(out["val_mse"]) == 4 and out["train_tasks"] == 2 and out["val_tasks"] == 2
+    assert out["val_mse"][out["best_epoch"]] == min(out["val_mse"])
+    meta = json.loads((tmp_path / "tuned.json").read_text())["meta"]
+    assert meta["open_loop_tuned"]["tuned_from_sha256"] == hashlib.sha256(
+        shipped_checkpoint().read_bytes()).hexdigest()
+    assert "dataset" in meta  # the starting model's record is kept
+    with safe_open(str(tmp_path / "tuned.safetensors"), framework="pt") as f:
+        names = f.keys()
+        tensors = {k: f.get_tensor(k) for k in names}
+    shipped = load_checkpoint(shipped_checkpoint()).state_dict()
+    changed = [k for k, v in tensors.items() if k in shipped and not torch.equal(v, shipped[k])]
+    assert bool(changed) == (out["best_epoch"] > 0)
