@@ -2,14 +2,15 @@
 """A pretrained model fine-tuned open loop on the offline dataset (3.3 plus the rollout loss).
 
     .venv/bin/python scripts/open_loop_checkpoint.py --data DS --out PREFIX \
-        [--checkpoint CKPT] [--epochs 60] [--threads 2]
+        [--checkpoint CKPT] [--epochs 60] [--threads 2] [--force]
 
 Reads the train and val splits of a ``peel dataset`` folder DS (the data the shipped model was
 trained on one step ahead, Eq. 23-25), fine-tunes ``--checkpoint`` (default: the shipped one)
 with the loss of its own rollout over the planner's horizon
 (:func:`peel_residual.adapt.open_loop_finetune`: 25 model steps fed the measured speeds and its
 own forces, early stopping on the val split's open-loop MSE) and writes
-``PREFIX.safetensors`` + ``PREFIX.json`` (atomically, :func:`peel_model.checkpoint.save_checkpoint`).
+``PREFIX.safetensors`` + ``PREFIX.json`` (atomically, :func:`peel_model.checkpoint.save_checkpoint`;
+an existing PREFIX only with ``--force``, checked before any training).
 The meta keeps the starting model's record and adds ``open_loop_tuned`` (the validation MSE in
 N^2 per epoch, index 0 before, the best epoch, the settings and the starting file's SHA-256).
 Prints the same as JSON. docs/planner.md ("A model tuned open loop") measures what the planner
@@ -35,7 +36,13 @@ def main(argv: list[str]) -> int:
     p.add_argument("--checkpoint", default="", help="starting model (default: the shipped one)")
     p.add_argument("--epochs", type=int_arg(1), default=None, help="at most (default 60)")
     p.add_argument("--threads", type=int_arg(1), default=2, help="torch threads")
+    p.add_argument("--force", action="store_true", help="replace an existing PREFIX checkpoint")
     args = p.parse_args(argv)
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        p.error(f"--out {args.out}: folder {out.parent} does not exist")
+    if out.with_suffix(".safetensors").exists() and not args.force:
+        p.error(f"--out {args.out}: {out.name}.safetensors exists (--force replaces it)")
     import torch
 
     from peel_model.checkpoint import (

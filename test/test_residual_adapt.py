@@ -126,6 +126,8 @@ def test_the_open_loop_checkpoint_script_writes_a_tuned_model(tmp_path: Path) ->
     out = json.loads(proc.stdout)
     assert len(out["val_mse"]) == 4 and out["train_tasks"] == 2 and out["val_tasks"] == 2
     assert out["val_mse"][out["best_epoch"]] == min(out["val_mse"])
+    again = _tune("--data", str(ds), "--out", str(tmp_path / "tuned"), "--epochs", "1")
+    assert again.returncode == 2 and "tuned.safetensors exists" in again.stderr
     meta = json.loads((tmp_path / "tuned.json").read_text())["meta"]
     assert meta["open_loop_tuned"]["tuned_from_sha256"] == hashlib.sha256(
         shipped_checkpoint().read_bytes()).hexdigest()
