@@ -19,9 +19,11 @@ from residual_helpers import generate_tasks
 from safetensors import safe_open
 
 from peel_model.checkpoint import load_checkpoint, shipped_checkpoint
-from peel_residual.adapt import OpenLoopTune, open_loop_finetune, rollout
+from peel_model.compensated import corrected_model
+from peel_model.effect_terms import Candidate, Term
+from peel_residual.adapt import OpenLoopTune, open_loop_finetune
 from peel_residual.data import horizons
-from peel_residual.predict import open_loop
+from peel_residual.predict import open_loop, rollout
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = OpenLoopTune(epochs=3, patience=3, batch=64)
@@ -31,13 +33,37 @@ def _params(model) -> list[torch.Tensor]:
     return [p.detach().clone() for p in model.parameters()]
 
 
-def test_the_rollout_is_the_analysis_rollout() -> None:
-    """The differentiable rollout gives the forces of :func:`peel_residual.predict.open_loop`."""
+def _reference_rollout(model, hz) -> np.ndarray:
+    """Algorithm 2 line 9 written out: one window per step, the measured (q, v) and the
+    forces predicted so far written into a copy of the recorded rows."""
+    rows = torch.as_tensor(hz.rows, dtype=torch.float32).clone()
+    t = torch.as_tensor(hz.t, dtype=torch.float32)
+    h = model.h
+    for k in range(hz.steps):
+        kw = {"t_next": t[:, h + k]} if getattr(model, "needs_time", False) else {}
+        with torch.no_grad():
+            rows[:, h + k, 2:4] = model.predict(rows[:, k:k + h], rows[:, h + k, 1], **kw)
+    return rows[:, h:, 2:4].numpy()
+
+
+def test_the_rollout_feeds_back_its_own_forces() -> None:
+    """``predict.open_loop`` (chunked, no gradient) and the differentiable ``rollout`` the
+    fine-tuning trains through both equal the rollout written out step by step, for the model
+    and for a model with a time term (fed the sample times); the measured forces past the
+    history never reach the prediction."""
     torch.set_num_threads(1)
-    model = load_checkpoint(shipped_checkpoint())
-    hz = horizons(generate_tasks("plant", n=2, seed=31), model.h, 25, 5)
-    ours = rollout(model, torch.as_tensor(hz.rows, dtype=torch.float32), 25).detach().numpy()
-    np.testing.assert_allclose(ours, open_loop(model, hz), atol=1e-4)
+    base = load_checkpoint(shipped_checkpoint())
+    timed = corrected_model(base, [Term(Candidate("drift_in_time"), "fz", (0.5,))], 0.1)
+    hz = horizons(generate_tasks("plant", n=2, seed=31), base.h, 25, 5)
+    for model in (base, timed):
+        want = _reference_rollout(model, hz)
+        np.testing.assert_allclose(open_loop(model, hz), want, atol=1e-5)
+        t = torch.as_tensor(hz.t, dtype=torch.float32)
+        ours = rollout(model, torch.as_tensor(hz.rows, dtype=torch.float32), 25, t)
+        np.testing.assert_allclose(ours.detach().numpy(), want, atol=1e-5)
+    hz.rows[:, base.h:, 2:4] += 100.0
+    np.testing.assert_allclose(open_loop(timed, hz), want, atol=1e-5)
+    assert not np.allclose(open_loop(base, hz), _reference_rollout(timed, hz), atol=1e-3)
 
 
 def test_open_loop_finetuning_lowers_the_validation_rollout_error() -> None:

@@ -11,13 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from residual_helpers import generate_tasks, write_bag
+from scipy.linalg import lstsq
 
 from peel_model.effect_terms import Candidate
 from peel_residual import trace as trace_module
 from peel_residual.cli import warn_unconverged
 from peel_residual.config import load_residual_config
 from peel_residual.tasks import tasks_from_bag
-from peel_residual.trace import Column, Problem, lasso_select, trace
+from peel_residual.trace import Column, Problem, TaskLeastSquares, lasso_select, trace
 
 CFG = load_residual_config(bootstrap=100)
 
@@ -38,6 +39,28 @@ def _problem(coef: dict[str, float], n_tasks: int = 12, per: int = 150, seed: in
     columns = [Column(Candidate(k, 6.0 if k == "periodic_adhesion" else None), "fx", X)
                for k, X in cols.items()]
     return Problem.build(y, groups, np.array(["fx"] * n), 5, score), columns
+
+
+def test_least_squares_by_task_equals_least_squares_on_the_rows() -> None:
+    """Fits from the tasks' stacked QR factors equal scipy's lstsq on the rows themselves: on
+    every task, on a fold's tasks, on a bootstrap resample (a task drawn twice counts twice),
+    with a task shorter than the number of columns, and with a dependent column (the
+    minimum-norm solution)."""
+    rng = np.random.default_rng(5)
+    groups = np.concatenate([np.repeat(np.arange(7), 40), [7, 7]])  # task 7: 2 rows, 4 columns
+    X = rng.normal(size=(groups.size, 4)) * [1.0, 1e3, 1e-3, 1.0]
+    y = X @ [0.5, -2e-3, 300.0, 0.0] + rng.normal(size=groups.size)
+    for design in (X, np.column_stack([X, X[:, 0] - X[:, 3]])):
+        ls = TaskLeastSquares.of(design, y, groups)
+        assert [r.shape[0] for r in ls.R] == [design.shape[1]] * 7 + [2]
+        np.testing.assert_allclose(ls.fit(np.ones(8)), lstsq(design, y)[0], rtol=1e-9, atol=1e-12)
+        fold = np.isin(groups, [0, 2, 3, 7])
+        np.testing.assert_allclose(ls.fit_tasks(np.array([0, 2, 3, 7])),
+                                   lstsq(design[fold], y[fold])[0], rtol=1e-9, atol=1e-12)
+        pick = np.array([1, 1, 4, 5, 7, 0, 0, 0])
+        rows = np.concatenate([np.flatnonzero(groups == g) for g in pick])
+        np.testing.assert_allclose(ls.fit(np.bincount(pick, minlength=8)),
+                                   lstsq(design[rows], y[rows])[0], rtol=1e-9, atol=1e-12)
 
 
 def test_the_true_term_is_named_with_its_coefficient() -> None:

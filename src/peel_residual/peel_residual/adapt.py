@@ -10,7 +10,7 @@ loss of its own rollout (output error, as system identification calls it),
     L(theta) = mean over horizons n, steps s <= S, both channels of (F_hat_{n,s}(theta) - F_{n,s})^2,
 
 F_hat the rollout of S model steps from the measured history, fed the measured speeds and its
-own predicted forces (the rollout of :func:`.predict.open_loop`, here with gradients), takes that
+own predicted forces (:func:`.predict.rollout`, with gradients), takes that
 generic gap into the model before any named family is tested against it. Adam with the
 gradient clipped to :attr:`OpenLoopTune.grad_clip`, mini-batches of horizons, early stopping on
 the validation tasks' open-loop loss (the best epoch's weights are kept).
@@ -28,6 +28,7 @@ import torch
 from peel_msgs_py.trajectory import Trajectory
 
 from .data import horizons
+from .predict import rollout
 
 
 @dataclass(frozen=True)
@@ -51,20 +52,6 @@ class OpenLoopResult:
     model: Any
     val_mse: list[float] = field(default_factory=list)
     best_epoch: int = 0
-
-
-def rollout(model: Any, rows: torch.Tensor, steps: int) -> torch.Tensor:
-    """F_hat ``[n, steps, 2]`` from ``rows [n, h + steps, 4]`` (q, v, fx, fz), differentiable:
-    step s is fed the measured (q, v) of row h + s and the forces predicted before it."""
-    h = int(model.h)
-    hist = rows[:, :h]
-    out = []
-    for s in range(steps):
-        f = model.predict(hist, rows[:, h + s, 1])
-        out.append(f)
-        row = torch.cat([rows[:, h + s, :2], f], dim=1)
-        hist = torch.cat([hist[:, 1:], row[:, None]], dim=1)
-    return torch.stack(out, dim=1)
 
 
 def _loss(model: Any, rows: torch.Tensor, valid: torch.Tensor, steps: int) -> torch.Tensor:

@@ -48,21 +48,32 @@ def one_step(model: Any, s: Steps) -> np.ndarray:
     return torch.cat(out).double().numpy() if out else np.zeros((0, 2))
 
 
+def rollout(model: Any, rows: torch.Tensor, steps: int,
+            t: torch.Tensor | None = None) -> torch.Tensor:
+    """F_hat ``[n, steps, 2]`` from ``rows [n, h + steps, 4]`` (q, v, fx, fz): step s is fed the
+    measured (q, v) of row h + s and the forces predicted before it (Algorithm 2 line 9);
+    ``t [n, h + steps]``, the sample times, for a model with time terms. Differentiable in the
+    model's parameters (:mod:`.adapt` trains through it)."""
+    h = int(model.h)
+    hist = rows[:, :h]
+    out = []
+    for s in range(steps):
+        kw = _kwargs(model, t[:, h + s]) if t is not None else {}
+        f = model.predict(hist, rows[:, h + s, 1], **kw)
+        out.append(f)
+        row = torch.cat([rows[:, h + s, :2], f], dim=1)
+        hist = torch.cat([hist[:, 1:], row[:, None]], dim=1)
+    return torch.stack(out, dim=1)
+
+
 @torch.no_grad()
 def open_loop(model: Any, hz: Horizons) -> np.ndarray:
-    """Predicted forces ``[n, S, 2]`` over each horizon, fed back into the history."""
+    """Predicted forces ``[n, S, 2]`` over each horizon (:func:`rollout`), in chunks."""
     dt = _dtype(model)
-    h, steps = int(model.h), hz.steps
-    out = []
-    for a in range(0, len(hz), _CHUNK):
-        b = slice(a, a + _CHUNK)
-        buf = torch.as_tensor(hz.rows[b], dtype=dt).clone()
-        t = torch.as_tensor(hz.t[b], dtype=dt)
-        for k in range(steps):
-            buf[:, h + k, 2:4] = model.predict(buf[:, k:k + h], buf[:, h + k, 1],
-                                               **_kwargs(model, t[:, h + k]))
-        out.append(buf[:, h:, 2:4])
-    return torch.cat(out).double().numpy() if out else np.zeros((0, steps, 2))
+    out = [rollout(model, torch.as_tensor(hz.rows[b], dtype=dt), hz.steps,
+                   torch.as_tensor(hz.t[b], dtype=dt))
+           for b in (slice(a, a + _CHUNK) for a in range(0, len(hz), _CHUNK))]
+    return torch.cat(out).double().numpy() if out else np.zeros((0, hz.steps, 2))
 
 
 def history_gradient(model: Any, s: Steps) -> np.ndarray:

@@ -10,9 +10,10 @@ functions themselves. No intercept: a model has no one-step bias on the data it 
 and a constant force is a candidate of its own (sensor offset).
 
 1. **Selection** (scikit-learn ``LassoCV`` on columns scaled to unit RMS, folds =
-   ``GroupKFold`` by task): the lasso at the largest alpha whose cross-validated error is within
-   one standard error of the minimum (the "one-standard-error rule", the sparser of the
-   equivalent models) keeps the terms with a non-zero coefficient. Of several variants of one
+   ``GroupKFold`` by task, coordinate descent on the Gram matrix): the lasso at the largest
+   alpha whose cross-validated error is within one standard error of the minimum (the
+   "one-standard-error rule", the sparser of the equivalent models) keeps the terms with a
+   non-zero coefficient (above :data:`LASSO_ZERO`). Of several variants of one
    family on one channel (periods, time constants) the one with the lowest held-out error is
    kept.
 2. **Significance** (backward elimination): a term stays only if (a) its coefficients differ
@@ -27,6 +28,12 @@ and a constant force is a candidate of its own (sensor offset).
 3. **Coefficients**: ordinary least squares on all fit rows; standard errors and percentile
    intervals from the bootstrap over tasks (resampling whole tasks keeps the within-task
    correlation of the residual).
+
+Every least-squares fit here is on a set of whole tasks (a fold's training tasks, a bootstrap
+resample, all of them), so each task's rows are reduced once to their QR factors
+(:class:`TaskLeastSquares`) and a fit solves the stacked factors of its tasks: the same
+least-squares problem as on the rows themselves (same normal equations, same singular values),
+at the cost of a system of tasks x columns rows instead of every sample.
 """
 
 from __future__ import annotations
@@ -37,9 +44,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.linalg import lstsq, qr
 from scipy.stats import chi2
 from sklearn.exceptions import ConvergenceWarning
-from sklearn.linear_model import Lasso, LassoCV, LinearRegression
+from sklearn.linear_model import Lasso, LassoCV
 from sklearn.model_selection import GroupKFold
 
 from peel_model.effect_terms import Candidate
@@ -49,6 +57,11 @@ from .config import ResidualConfig
 #: Coordinate-descent iterations of each lasso fit (a fit that needs more is counted as not
 #: converged in ``Trace.lasso["unconverged_fits"]`` and warned about by ``peel residual``).
 LASSO_MAX_ITER = 20000
+
+#: A lasso coefficient (of a column scaled to unit RMS, rows in units of their channel's RMS
+#: residual) at or below this is rounding of the coordinate descent on the Gram matrix, not a
+#: kept term.
+LASSO_ZERO = 1e-10
 
 #: ``(terms [(candidate, channel, coefficients)], test task ids) -> open-loop SSE``.
 OpenLoopScore = Callable[[list[tuple[Candidate, str, np.ndarray]], np.ndarray], float]
@@ -76,6 +89,9 @@ class Problem:
     channel: np.ndarray  # channel name of each row
     splits: list[tuple[np.ndarray, np.ndarray]]
     score: OpenLoopScore | None = None
+    #: :func:`open_loop_sse` of each column list scored so far (keys in order): the backward
+    #: elimination meets a set again after a drop, and its folds' fits are the same.
+    open_loop_memo: dict[tuple[str, ...], float] = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, y: np.ndarray, groups: np.ndarray, channel: np.ndarray, folds: int,
@@ -148,18 +164,61 @@ def _design(cols: Sequence[Column]) -> np.ndarray:
     return np.concatenate([c.X for c in cols], axis=1)
 
 
-def _ols(X: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return LinearRegression(fit_intercept=False).fit(X, y).coef_
+@dataclass
+class TaskLeastSquares:
+    """Ordinary least squares of ``y`` on ``X`` over any multiset of whole tasks.
+
+    Each task's rows ``X_t = Q_t R_t`` are kept as ``R_t`` and ``z_t = Q_t' y_t`` (the R factor
+    of ``[X_t y_t]``, LAPACK ``geqrf`` through scipy, Q never formed); the fit on
+    task ``t`` counted ``w_t`` times solves ``[sqrt(w_t) R_t] b = [sqrt(w_t) z_t]`` stacked, whose
+    normal equations ``sum w_t X_t'X_t b = sum w_t X_t'y_t`` are those of the rows themselves
+    (scipy's ``lstsq``, the minimum-norm solution when the columns are dependent)."""
+
+    ids: np.ndarray
+    R: list[np.ndarray]
+    z: list[np.ndarray]
+
+    @classmethod
+    def of(cls, X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> TaskLeastSquares:
+        ids = np.unique(groups)
+        k = X.shape[1]
+        R, z = [], []
+        for g in ids:
+            rows = groups == g
+            r = qr(np.column_stack([X[rows], y[rows]]), mode="r", overwrite_a=True,
+                   check_finite=False)[0][:min(int(rows.sum()), k)]
+            R.append(r[:, :k])
+            z.append(r[:, k])
+        return cls(ids, R, z)
+
+    def fit(self, weight: np.ndarray) -> np.ndarray:
+        """Coefficients with task ``ids[i]``'s rows counted ``weight[i]`` times (0: left out)."""
+        use = np.flatnonzero(weight > 0)
+        root = np.sqrt(weight[use].astype(float))
+        A = np.concatenate([w * self.R[i] for w, i in zip(root, use, strict=True)])
+        b = np.concatenate([w * self.z[i] for w, i in zip(root, use, strict=True)])
+        return lstsq(A, b)[0]
+
+    def fit_tasks(self, tasks: np.ndarray) -> np.ndarray:
+        """Coefficients on the rows of ``tasks`` (each once)."""
+        return self.fit(np.isin(self.ids, tasks).astype(float))
 
 
-def cv_residual(p: Problem, cols: Sequence[Column]) -> np.ndarray:
-    """Held-out residual of every row: OLS on ``cols`` fitted on the other folds."""
+def _solver(p: Problem, cols: Sequence[Column]) -> tuple[np.ndarray, TaskLeastSquares]:
+    X = _design(cols)
+    return X, TaskLeastSquares.of(X, p.y, p.groups)
+
+
+def cv_residual(p: Problem, cols: Sequence[Column],
+                solved: tuple[np.ndarray, TaskLeastSquares] | None = None) -> np.ndarray:
+    """Held-out residual of every row: OLS on ``cols`` fitted on the other folds
+    (``solved``: :func:`_solver` of ``cols``, when the caller has it)."""
     if not cols:
         return p.y.copy()
-    X = _design(cols)
+    X, ls = solved or _solver(p, cols)
     r = np.empty_like(p.y)
     for train, test in p.splits:
-        r[test] = p.y[test] - X[test] @ _ols(X[train], p.y[train])
+        r[test] = p.y[test] - X[test] @ ls.fit_tasks(p.groups[train])
     return r
 
 
@@ -174,27 +233,29 @@ def _split_coef(cols: Sequence[Column], coef: np.ndarray) -> list[np.ndarray]:
 def open_loop_sse(p: Problem, cols: Sequence[Column]) -> float:
     """Held-out open-loop SSE: per fold, OLS on the other folds, ``p.score`` on its tasks."""
     assert p.score is not None
-    X = _design(cols) if cols else None
+    key = tuple(c.key for c in cols)
+    if key in p.open_loop_memo:
+        return p.open_loop_memo[key]
+    ls = _solver(p, cols)[1] if cols else None
     total = 0.0
     for train, test in p.splits:
         terms = []
-        if cols:
-            parts = _split_coef(cols, _ols(X[train], p.y[train]))
+        if ls is not None:
+            parts = _split_coef(cols, ls.fit_tasks(p.groups[train]))
             terms = [(c.candidate, c.channel, b) for c, b in zip(cols, parts, strict=True)]
         total += p.score(terms, np.unique(p.groups[test]))
+    p.open_loop_memo[key] = total
     return total
 
 
-def bootstrap_coefs(p: Problem, cols: Sequence[Column], n: int,
-                    rng: np.random.Generator) -> np.ndarray:
+def bootstrap_coefs(p: Problem, cols: Sequence[Column], n: int, rng: np.random.Generator,
+                    ls: TaskLeastSquares | None = None) -> np.ndarray:
     """OLS coefficients on ``n`` resamples of whole tasks: ``[n, n_columns]``."""
-    X = _design(cols)
-    ids = np.unique(p.groups)
-    rows_of = {g: np.flatnonzero(p.groups == g) for g in ids}
-    out = np.empty((n, X.shape[1]))
+    ls = ls or _solver(p, cols)[1]
+    out = np.empty((n, sum(c.X.shape[1] for c in cols)))
     for b in range(n):
-        idx = np.concatenate([rows_of[g] for g in rng.choice(ids, size=ids.size, replace=True)])
-        out[b] = _ols(X[idx], p.y[idx])
+        pick = rng.choice(ls.ids, size=ls.ids.size, replace=True)
+        out[b] = ls.fit(np.bincount(np.searchsorted(ls.ids, pick), minlength=ls.ids.size))
     return out
 
 
@@ -213,13 +274,13 @@ def lasso_select(p: Problem, cols: Sequence[Column]) -> tuple[list[int], dict[st
     Xs = X / np.where(scale > 1e-12, scale, 1.0)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ConvergenceWarning)
-        cv = LassoCV(fit_intercept=False, cv=p.splits, alphas=40, eps=1e-2,
+        cv = LassoCV(fit_intercept=False, cv=p.splits, alphas=40, eps=1e-2, precompute=True,
                      max_iter=LASSO_MAX_ITER, tol=1e-4).fit(Xs, p.y)
-        coef = Lasso(alpha=_one_se_alpha(cv), fit_intercept=False,
+        coef = Lasso(alpha=_one_se_alpha(cv), fit_intercept=False, precompute=True,
                      max_iter=LASSO_MAX_ITER).fit(Xs, p.y).coef_
     best = int(np.argmin(cv.mse_path_.mean(axis=1)))
     owner = np.concatenate([np.full(c.X.shape[1], i) for i, c in enumerate(cols)])
-    keep = sorted({int(owner[j]) for j in np.flatnonzero(np.abs(coef) > 0)})
+    keep = sorted({int(owner[j]) for j in np.flatnonzero(np.abs(coef) > LASSO_ZERO)})
     return keep, {"alpha_min": float(cv.alphas_[best]), "alpha_1se": _one_se_alpha(cv),
                   "kept": [cols[i].key for i in keep],
                   "unconverged_fits": sum(issubclass(w.category, ConvergenceWarning)
@@ -244,9 +305,11 @@ def _assess(p: Problem, cols: Sequence[Column], cfg: ResidualConfig,
             rng: np.random.Generator) -> list[Finding]:
     """Coefficients, intervals, Wald statistics and one-step shares of every term; the
     open-loop shares (the expensive part) only once every term passes the Wald test."""
-    r_full = cv_residual(p, cols)
-    boots = bootstrap_coefs(p, cols, cfg.bootstrap, rng)
-    coefs = _split_coef(cols, _ols(_design(cols), p.y))
+    solved = _solver(p, cols)
+    ls = solved[1]
+    r_full = cv_residual(p, cols, solved)
+    boots = bootstrap_coefs(p, cols, cfg.bootstrap, rng, ls)
+    coefs = _split_coef(cols, ls.fit(np.ones(ls.ids.size)))
     stds = _split_coef(cols, boots.std(axis=0))
     lo = _split_coef(cols, np.quantile(boots, (1 - cfg.ci_level) / 2, axis=0))
     hi = _split_coef(cols, np.quantile(boots, 1 - (1 - cfg.ci_level) / 2, axis=0))
