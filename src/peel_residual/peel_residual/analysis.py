@@ -85,12 +85,8 @@ def open_loop_scorer(model: Any, hz: Horizons, weights: dict[str, float],
                      dt_s: float) -> OpenLoopScore:
     """Held-out open-loop SSE, summed over the channels in ``weights`` (each times its weight),
     on the horizons of some tasks, for terms added to ``model`` (:mod:`.trace`, criteria b, c)."""
-    cache: dict[tuple, float] = {}
 
     def score(terms: list, test_tasks: np.ndarray) -> float:
-        key = tuple(test_tasks.tolist())
-        if not terms and key in cache:
-            return cache[key]
         try:
             m = corrected_model(model, [Term(c, ch, tuple(float(x) for x in coef))
                                         for c, ch, coef in terms], dt_s) if terms else model
@@ -108,8 +104,6 @@ def open_loop_scorer(model: Any, hz: Horizons, weights: dict[str, float],
                 i = FORCE_CHANNELS.index(ch)
                 err = sub.rows[:, -sub.steps:, 2 + i] - pred[:, :, i]
                 out += weights[ch] * _masked_sse(err, sub.valid)
-        if not terms:
-            cache[key] = out
         return out
 
     return score
