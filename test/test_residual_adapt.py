@@ -7,6 +7,7 @@ not the report's), the shipped model; the study script's ``--adapt-open-loop`` a
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import subprocess
@@ -14,6 +15,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from residual_helpers import generate_tasks
 from safetensors import safe_open
@@ -23,7 +25,7 @@ from peel_model.compensated import corrected_model
 from peel_model.effect_terms import Candidate, Term
 from peel_residual.adapt import OpenLoopTune, open_loop_finetune
 from peel_residual.data import horizons
-from peel_residual.predict import open_loop, rollout
+from peel_residual.predict import open_loop, open_loop_many, rollout
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = OpenLoopTune(epochs=3, patience=3, batch=64)
@@ -64,6 +66,35 @@ def test_the_rollout_feeds_back_its_own_forces() -> None:
     hz.rows[:, base.h:, 2:4] += 100.0
     np.testing.assert_allclose(open_loop(timed, hz), want, atol=1e-5)
     assert not np.allclose(open_loop(base, hz), _reference_rollout(timed, hz), atol=1e-3)
+
+
+def test_models_rolled_out_together_equal_each_rolled_out_alone(monkeypatch) -> None:
+    """``open_loop_many`` (one f_theta call per step on the rows of every model) gives each
+    model the rollout it has alone: the plain model, a time term, cross-talk with an offset,
+    each on its own horizons, and with batches split at the chunk size, to within float32
+    rounding (f_theta's result for a row changes in the last bits with the batch it is in,
+    and the rollout feeds it back); models that do not share one f_theta are refused."""
+    import peel_residual.predict as P
+
+    torch.set_num_threads(1)
+    base = load_checkpoint(shipped_checkpoint())
+    models = [base,
+              corrected_model(base, [Term(Candidate("drift_in_time"), "fz", (0.5,))], 0.1),
+              corrected_model(base, [Term(Candidate("cross_talk"), "fx", (0.05,)),
+                                     Term(Candidate("sensor_offset"), "fz", (-1.5,))], 0.1)]
+    hz = horizons(generate_tasks("plant", n=3, seed=31), base.h, 25, 5)
+    hzs = [hz.subset(hz.task == i) for i in (0, 1, 2)]
+    alone = [_reference_rollout(m, z) for m, z in zip(models, hzs, strict=True)]
+    assert not np.allclose(alone[1], open_loop(base, hzs[1]), atol=0.1)  # the terms act
+    assert not np.allclose(alone[2], open_loop(base, hzs[2]), atol=0.1)
+    for chunk in (P._CHUNK, 7):
+        monkeypatch.setattr(P, "_CHUNK", chunk)
+        together = open_loop_many(models, hzs)
+        for got, want in zip(together, alone, strict=True):  # float32 rounding of another
+            np.testing.assert_allclose(got, want, atol=2e-3)  # batch, fed back 25 steps
+    other = copy.deepcopy(base)
+    with pytest.raises(ValueError, match="share one f_theta"):
+        open_loop_many([base, other], hzs[:2])
 
 
 def test_open_loop_finetuning_lowers_the_validation_rollout_error() -> None:

@@ -81,8 +81,8 @@ def test_noise_names_nothing() -> None:
 
 
 def test_a_term_that_hurts_the_open_loop_is_rejected() -> None:
-    def score(terms, test_tasks):  # any term makes the "rollouts" worse
-        return 100.0 + 10.0 * len(terms)
+    def score(jobs):  # any term makes the "rollouts" worse
+        return [100.0 + 10.0 * len(terms) for terms, _ in jobs]
 
     p, cols = _problem({"viscous_drag": 0.6}, score=score)
     res = trace("force", p, cols, CFG, np.random.default_rng(1))

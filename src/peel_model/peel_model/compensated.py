@@ -158,13 +158,27 @@ class CompensatedPredictor(nn.Module):
         sample k+1 ``t_next [B]`` (s in the task)."""
         if hist.dim() != 3 or hist.shape[1] != self.h or hist.shape[2] != 4:
             raise ValueError(f"hist must have shape [B, {self.h}, 4], got {list(hist.shape)}")
+        base_hist, v_next, a = self.base_input(hist, v_next, t_next)
+        return self.output(self.base.predict(base_hist, v_next), a)
+
+    def base_input(self, hist: Tensor, v_next: Tensor, t_next: Tensor | None = None
+                   ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The first half of :meth:`predict`: (f_theta's history, with the terms removed from
+        its forces, v_next, the additive terms A ``[B, h + 1, 2]`` or None without force
+        terms). Batched rollouts of several corrected models on one f_theta call it per model
+        and f_theta once on all rows (``peel_residual.predict.rollout_many``)."""
         dtype = self.base.in_mean.dtype
         hist, v_next = hist.to(dtype), v_next.to(dtype)
         if not self.force_terms:
-            return self.base.predict(hist, v_next)
+            return hist, v_next, None
         a = self.additive(self.rows(hist, v_next, t_next))
         clean = self._mix(hist[..., 2:4] - a[:, : self.h], inverse=True)
-        f = self.base.predict(torch.cat([hist[..., :2], clean], dim=-1), v_next)
+        return torch.cat([hist[..., :2], clean], dim=-1), v_next, a
+
+    def output(self, f: Tensor, a: Tensor | None) -> Tensor:
+        """The second half of :meth:`predict`: (I + C) F_next + A_next from f_theta's ``f``."""
+        if a is None:
+            return f
         return self._mix(f, inverse=False) + a[:, self.h]
 
     def forward(self, hist: Tensor, v_next: Tensor, t_next: Tensor | None = None) -> Tensor:

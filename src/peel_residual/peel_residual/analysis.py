@@ -84,26 +84,34 @@ def split_tasks(n: int, fraction: float, seed: int) -> tuple[list[int], list[int
 def open_loop_scorer(model: Any, hz: Horizons, weights: dict[str, float],
                      dt_s: float) -> OpenLoopScore:
     """Held-out open-loop SSE, summed over the channels in ``weights`` (each times its weight),
-    on the horizons of some tasks, for terms added to ``model`` (:mod:`.trace`, criteria b, c)."""
+    on the horizons of some tasks, for terms added to ``model`` (:mod:`.trace`, criteria b, c);
+    the force rollouts of one call run batched (:func:`~.predict.open_loop_many`)."""
 
-    def score(terms: list, test_tasks: np.ndarray) -> float:
+    def corrected(terms: list) -> Any:
+        if not terms:
+            return model
         try:
-            m = corrected_model(model, [Term(c, ch, tuple(float(x) for x in coef))
-                                        for c, ch, coef in terms], dt_s) if terms else model
+            return corrected_model(model, [Term(c, ch, tuple(float(x) for x in coef))
+                                           for c, ch, coef in terms], dt_s)
         except PeelError:  # e.g. an unstable lag fitted on one fold: no better than nothing
-            return score([], test_tasks)
-        sub = hz.subset(np.isin(hz.task, test_tasks))
-        out = 0.0
+            return model
+
+    def score(jobs: list) -> list[float]:
+        models = [corrected(terms) for terms, _ in jobs]
+        subs = [hz.subset(np.isin(hz.task, test_tasks)) for _, test_tasks in jobs]
+        out = [0.0] * len(jobs)
         if VELOCITY_CHANNEL in weights:
-            err = sub.rows[:, -sub.steps:, 1] - P.speed_open_loop(m, sub)
-            out += weights[VELOCITY_CHANNEL] * _masked_sse(err, sub.valid)
+            for j, (m, sub) in enumerate(zip(models, subs, strict=True)):
+                err = sub.rows[:, -sub.steps:, 1] - P.speed_open_loop(m, sub)
+                out[j] += weights[VELOCITY_CHANNEL] * _masked_sse(err, sub.valid)
         forces = [ch for ch in FORCE_CHANNELS if ch in weights]
         if forces:
-            pred = P.open_loop(m, sub)
-            for ch in forces:
-                i = FORCE_CHANNELS.index(ch)
-                err = sub.rows[:, -sub.steps:, 2 + i] - pred[:, :, i]
-                out += weights[ch] * _masked_sse(err, sub.valid)
+            for j, (sub, pred) in enumerate(zip(subs, P.open_loop_many(models, subs),
+                                                strict=True)):
+                for ch in forces:
+                    i = FORCE_CHANNELS.index(ch)
+                    err = sub.rows[:, -sub.steps:, 2 + i] - pred[:, :, i]
+                    out[j] += weights[ch] * _masked_sse(err, sub.valid)
         return out
 
     return score

@@ -34,16 +34,17 @@ from .data import Horizons
 def open_loop_errors(model: Any, hz: Horizons) -> np.ndarray:
     """Open-loop errors ``[n, S, 3]`` in the order of :data:`CHANNELS` (``fx``, ``fz`` N;
     ``v`` mm/s), NaN where a step is not valid."""
-    pred = P.open_loop(model, hz)
+    return _errors(model, hz, P.open_loop(model, hz))
+
+
+def _errors(model: Any, hz: Horizons, pred: np.ndarray) -> np.ndarray:
     err = np.stack([hz.rows[:, -hz.steps:, 2 + i] - pred[:, :, i]
                     for i in range(len(FORCE_CHANNELS))]
                    + [hz.rows[:, -hz.steps:, 1] - P.speed_open_loop(model, hz)], axis=-1)
     return np.where(hz.valid[:, :, None] & np.isfinite(err), err, np.nan)
 
 
-def open_loop_rmse(model: Any, hz: Horizons) -> dict[str, float]:
-    """Held-out open-loop RMSE per channel (``fx``, ``fz`` N; ``v`` mm/s)."""
-    err = open_loop_errors(model, hz)
+def _rmse(err: np.ndarray) -> dict[str, float]:
     out = {}
     for i, ch in enumerate(CHANNELS):
         e = err[:, :, i][np.isfinite(err[:, :, i])]
@@ -51,10 +52,34 @@ def open_loop_rmse(model: Any, hz: Horizons) -> dict[str, float]:
     return out
 
 
-def per_task_sse(model: Any, hz: Horizons) -> np.ndarray:
+def open_loop_rmse(model: Any, hz: Horizons) -> dict[str, float]:
+    """Held-out open-loop RMSE per channel (``fx``, ``fz`` N; ``v`` mm/s)."""
+    return _rmse(open_loop_errors(model, hz))
+
+
+def _task_sse(err: np.ndarray, hz: Horizons) -> np.ndarray:
     """Open-loop SSE ``[tasks, 3]`` of each task of ``hz`` (in ``np.unique`` order) per channel."""
-    sq = np.nan_to_num(open_loop_errors(model, hz) ** 2).sum(axis=1)
+    sq = np.nan_to_num(err ** 2).sum(axis=1)
     return np.stack([sq[hz.task == j].sum(axis=0) for j in np.unique(hz.task)])
+
+
+class _Alternatives:
+    """The open-loop errors on ``hz`` of ``model`` with each set of terms asked for, the sets
+    of one call rolled out together (:func:`~.predict.open_loop_many`) and each set once."""
+
+    def __init__(self, model: Any, hz: Horizons, dt_s: float) -> None:
+        self.model, self.hz, self.dt_s = model, hz, dt_s
+        self.memo: dict[tuple[int, ...], np.ndarray] = {}
+
+    def __call__(self, sets: Sequence[Sequence[Term]]) -> list[np.ndarray]:
+        keys = [tuple(sorted(id(t) for t in ts)) for ts in sets]
+        todo = {k: ts for k, ts in zip(keys, sets, strict=True) if k not in self.memo}
+        models = [corrected_model(self.model, ts, self.dt_s) if ts else self.model
+                  for ts in todo.values()]
+        preds = P.open_loop_many(models, [self.hz] * len(models))
+        for k, m, pred in zip(todo, models, preds, strict=True):
+            self.memo[k] = _errors(m, self.hz, pred)
+        return [self.memo[k] for k in keys]
 
 
 def holm_pass(p: np.ndarray, alpha: float, m: int) -> np.ndarray:
@@ -72,17 +97,16 @@ def consistency_check(model: Any, terms: Sequence[Term], hz: Horizons, dt_s: flo
     """(kept, [(dropped, reason)]): the held-out tasks' paired test of the module docstring."""
     from scipy.stats import wilcoxon
 
-    def sse(ts: Sequence[Term]) -> np.ndarray:
-        return per_task_sse(corrected_model(model, ts, dt_s) if ts else model, hz)
-
-    base = sse([]).sum(axis=0)
+    errors = _Alternatives(model, hz, dt_s)
+    base = _task_sse(errors([[]])[0], hz).sum(axis=0)
     w = np.where(base > 0, 1.0 / np.where(base > 0, base, 1.0), 0.0)
     current, dropped, m0 = list(terms), [], len(terms)
     while current:
-        full = sse(current)
+        full, *rest = (_task_sse(e, hz) for e in errors(
+            [current, *([t for t in current if t is not term] for term in current)]))
         p = np.ones(len(current))
-        for i, term in enumerate(current):
-            d = ((sse([t for t in current if t is not term]) - full) * w).sum(axis=1)
+        for i, without in enumerate(rest):
+            d = ((without - full) * w).sum(axis=1)
             if np.any(d != 0):
                 p[i] = float(wilcoxon(d, alternative="greater").pvalue)
         if holm_pass(p, alpha, m0).all():
@@ -98,20 +122,18 @@ def consistency_check(model: Any, terms: Sequence[Term], hz: Horizons, dt_s: flo
 def held_out_decision(model: Any, terms: Sequence[Term], hz: Horizons, dt_s: float
                       ) -> tuple[list[Term], list[tuple[Term, str]]]:
     """(kept terms, [(dropped term, reason)]) by the rule of the module docstring."""
-    def rmse(ts: Sequence[Term]) -> dict[str, float]:
-        return open_loop_rmse(corrected_model(model, ts, dt_s) if ts else model, hz)
-
-    base = rmse([])
+    errors = _Alternatives(model, hz, dt_s)
+    base = _rmse(errors([[]])[0])
 
     def score(r: dict[str, float]) -> float:
         return sum((r[ch] / base[ch]) ** 2 for ch in CHANNELS if base[ch] > 0)
 
     current, dropped = list(terms), []
     while current:
-        full = rmse(current)
+        full, *rest = (_rmse(e) for e in errors(
+            [current, *([t for t in current if t is not term] for term in current)]))
         best: tuple[float, Term, str] | None = None
-        for term in current:
-            without = rmse([t for t in current if t is not term])
+        for term, without in zip(current, rest, strict=True):
             own = (full[term.channel] - without[term.channel]) / max(base[term.channel], 1e-12)
             total = score(full) - score(without)
             gain = max(own, total)

@@ -17,7 +17,7 @@ So the open-loop residual is where a slowly varying effect shows, and it is fitt
 The output-error fit is then a linear regression of r on J, which the same selection as one
 step ahead (:mod:`.trace`) takes: lasso with cross-validation by task, a Wald test with a
 bootstrap over tasks, the held-out decision after it. J is the *secant* of the rollout itself
-over a term of :data:`PROBE_N` (one rollout per basis function): the rollout the planner uses,
+over a term of :data:`PROBE_N` (one rollout per basis function, run batched): the rollout the planner uses,
 cross-talk's mixing and time terms included, with no second implementation of it. A secant,
 not a derivative: f_theta's rollout is not smooth at small changes (ReLU kinks, the pad's
 contact thresholds), so the response to a 0.01 or 0.1 N term is not the response to a 1-2 N
@@ -71,18 +71,22 @@ def open_loop_responses(model: Any, hz: Horizons, candidates: Sequence[Candidate
     base = P.open_loop(model, hz)
     rows = horizon_rows(hz)
     out: dict[tuple[str, str], tuple[Candidate, np.ndarray]] = {}
+    probes: list[tuple[tuple[str, str], int, float, Any]] = []
     for cand in candidates:
         for ch_name in FORCE_CHANNELS:
             if ch_name not in cand.spec.channels:
                 continue
             scale = _probe_scale(cand, rows, FORCE_CHANNELS.index(ch_name), hz.valid)
-            J = np.zeros((*base.shape, cand.n_basis))
+            out[(cand.key, ch_name)] = (cand, np.zeros((*base.shape, cand.n_basis)))
             for b in np.flatnonzero(np.isfinite(scale) & (scale > 0)):
                 coef = np.zeros(cand.n_basis)
                 coef[b] = scale[b]
-                m = corrected_model(model, [Term(cand, ch_name, tuple(coef.tolist()))], dt_s)
-                J[..., b] = (P.open_loop(m, hz) - base) / scale[b]
-            out[(cand.key, ch_name)] = (cand, J)
+                probes.append(((cand.key, ch_name), b, scale[b], corrected_model(
+                    model, [Term(cand, ch_name, tuple(coef.tolist()))], dt_s)))
+    for (key, b, size, _), pred in zip(probes, P.open_loop_many([m for *_, m in probes],
+                                                                 [hz] * len(probes)),
+                                       strict=True):
+        out[key][1][..., b] = (pred - base) / size
     return base, out
 
 

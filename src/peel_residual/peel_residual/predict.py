@@ -48,32 +48,95 @@ def one_step(model: Any, s: Steps) -> np.ndarray:
     return torch.cat(out).double().numpy() if out else np.zeros((0, 2))
 
 
+def _halves(model: Any) -> tuple[Any, Any, Any]:
+    """(f_theta, the step before it, the step after it) of a plain or a compensated model
+    (:meth:`~peel_model.compensated.CompensatedPredictor.base_input` / ``output``)."""
+    if hasattr(model, "base_input"):
+        return model.base, model.base_input, model.output
+    return model, lambda hist, v, t=None: (hist, v, None), lambda f, a: f
+
+
+def _shared_base(parts: Sequence[tuple[Any, Any, Any]]) -> Any:
+    base = parts[0][0]
+    if any(p[0] is not base for p in parts):
+        raise ValueError("models rolled out together must share one f_theta")
+    return base
+
+
+def rollout_many(models: Sequence[Any], rows: Sequence[torch.Tensor], steps: int,
+                 t: Sequence[torch.Tensor | None] | None = None) -> list[torch.Tensor]:
+    """:func:`rollout` of each model on its own rows, for models that share one f_theta (the
+    plain model and corrected copies of it): per step, each model's terms are removed from its
+    rows' force history, f_theta runs *once* on all rows, and each model's terms are added
+    back. At a few hundred rows f_theta's cost is mostly per call, not per row, so the
+    selection's fold scores and the held-out decision's alternatives run together."""
+    parts = [_halves(m) for m in models]
+    base = _shared_base(parts)
+    h, ts = int(base.h), list(t) if t is not None else [None] * len(models)
+    hists = [r[:, :h] for r in rows]
+    sizes = [len(r) for r in rows]
+    outs: list[list[torch.Tensor]] = [[] for _ in models]
+    for s in range(steps):
+        ins = [before(hist, r[:, h + s, 1], tt[:, h + s] if tt is not None else None)
+               for (_, before, _), hist, r, tt in zip(parts, hists, rows, ts, strict=True)]
+        f = base.predict(torch.cat([x[0] for x in ins]), torch.cat([x[1] for x in ins]))
+        for i, (fi, x) in enumerate(zip(f.split(sizes), ins, strict=True)):
+            fo = parts[i][2](fi, x[2])
+            outs[i].append(fo)
+            row = torch.cat([rows[i][:, h + s, :2], fo], dim=1)
+            hists[i] = torch.cat([hists[i][:, 1:], row[:, None]], dim=1)
+    return [torch.stack(o, dim=1) for o in outs]
+
+
 def rollout(model: Any, rows: torch.Tensor, steps: int,
             t: torch.Tensor | None = None) -> torch.Tensor:
     """F_hat ``[n, steps, 2]`` from ``rows [n, h + steps, 4]`` (q, v, fx, fz): step s is fed the
     measured (q, v) of row h + s and the forces predicted before it (Algorithm 2 line 9);
     ``t [n, h + steps]``, the sample times, for a model with time terms. Differentiable in the
     model's parameters (:mod:`.adapt` trains through it)."""
-    h = int(model.h)
-    hist = rows[:, :h]
-    out = []
-    for s in range(steps):
-        kw = _kwargs(model, t[:, h + s]) if t is not None else {}
-        f = model.predict(hist, rows[:, h + s, 1], **kw)
-        out.append(f)
-        row = torch.cat([rows[:, h + s, :2], f], dim=1)
-        hist = torch.cat([hist[:, 1:], row[:, None]], dim=1)
-    return torch.stack(out, dim=1)
+    return rollout_many([model], [rows], steps, [t])[0]
+
+
+def _pieces(n: Sequence[int]) -> list[list[tuple[int, slice]]]:
+    """(model, row slice) pieces of at most :data:`_CHUNK` rows, packed into batches of at most
+    :data:`_CHUNK` rows in order."""
+    batches: list[list[tuple[int, slice]]] = [[]]
+    room = _CHUNK
+    for i, rows in enumerate(n):
+        for a in range(0, rows, _CHUNK):
+            size = min(_CHUNK, rows - a)
+            if size > room:
+                batches.append([])
+                room = _CHUNK
+            batches[-1].append((i, slice(a, a + size)))
+            room -= size
+    return [b for b in batches if b]
 
 
 @torch.no_grad()
+def open_loop_many(models: Sequence[Any], hzs: Sequence[Horizons]) -> list[np.ndarray]:
+    """:func:`open_loop` of each model on its horizons, batched by :func:`rollout_many`."""
+    if not models:
+        return []
+    _shared_base([_halves(m) for m in models])
+    dt = _dtype(models[0])
+    steps = {hz.steps for hz in hzs}
+    if len(steps) != 1:
+        raise ValueError(f"open_loop_many: horizons of different lengths {sorted(steps)}")
+    out: list[list[np.ndarray]] = [[] for _ in models]
+    for batch in _pieces([len(hz) for hz in hzs]):
+        pred = rollout_many([models[i] for i, _ in batch],
+                            [torch.as_tensor(hzs[i].rows[b], dtype=dt) for i, b in batch],
+                            hzs[0].steps,
+                            [torch.as_tensor(hzs[i].t[b], dtype=dt) for i, b in batch])
+        for (i, _), p in zip(batch, pred, strict=True):
+            out[i].append(p.double().numpy())
+    return [np.concatenate(o) if o else np.zeros((0, hzs[0].steps, 2)) for o in out]
+
+
 def open_loop(model: Any, hz: Horizons) -> np.ndarray:
     """Predicted forces ``[n, S, 2]`` over each horizon (:func:`rollout`), in chunks."""
-    dt = _dtype(model)
-    out = [rollout(model, torch.as_tensor(hz.rows[b], dtype=dt), hz.steps,
-                   torch.as_tensor(hz.t[b], dtype=dt))
-           for b in (slice(a, a + _CHUNK) for a in range(0, len(hz), _CHUNK))]
-    return torch.cat(out).double().numpy() if out else np.zeros((0, hz.steps, 2))
+    return open_loop_many([model], [hz])[0]
 
 
 def history_gradient(model: Any, s: Steps) -> np.ndarray:

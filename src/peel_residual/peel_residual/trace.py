@@ -63,8 +63,10 @@ LASSO_MAX_ITER = 20000
 #: kept term.
 LASSO_ZERO = 1e-10
 
-#: ``(terms [(candidate, channel, coefficients)], test task ids) -> open-loop SSE``.
-OpenLoopScore = Callable[[list[tuple[Candidate, str, np.ndarray]], np.ndarray], float]
+#: ``[(terms [(candidate, channel, coefficients)], test task ids), ...] -> the open-loop SSE
+#: of each`` (one call scores many, so that their rollouts run batched).
+OpenLoopScore = Callable[[list[tuple[list[tuple[Candidate, str, np.ndarray]], np.ndarray]]],
+                         list[float]]
 
 
 @dataclass
@@ -89,7 +91,7 @@ class Problem:
     channel: np.ndarray  # channel name of each row
     splits: list[tuple[np.ndarray, np.ndarray]]
     score: OpenLoopScore | None = None
-    #: :func:`open_loop_sse` of each column list scored so far (keys in order): the backward
+    #: :func:`open_loop_sse_many` of each column list scored so far (keys in order): the backward
     #: elimination meets a set again after a drop, and its folds' fits are the same.
     open_loop_memo: dict[tuple[str, ...], float] = field(default_factory=dict, repr=False)
 
@@ -230,22 +232,27 @@ def _split_coef(cols: Sequence[Column], coef: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def open_loop_sse(p: Problem, cols: Sequence[Column]) -> float:
-    """Held-out open-loop SSE: per fold, OLS on the other folds, ``p.score`` on its tasks."""
+def open_loop_sse_many(p: Problem, col_lists: Sequence[Sequence[Column]]) -> list[float]:
+    """Held-out open-loop SSE of each column list: per fold, OLS on the other folds,
+    ``p.score`` on its tasks; every fold of every list not scored before in one call."""
     assert p.score is not None
-    key = tuple(c.key for c in cols)
-    if key in p.open_loop_memo:
-        return p.open_loop_memo[key]
-    ls = _solver(p, cols)[1] if cols else None
-    total = 0.0
-    for train, test in p.splits:
-        terms = []
-        if ls is not None:
-            parts = _split_coef(cols, ls.fit_tasks(p.groups[train]))
-            terms = [(c.candidate, c.channel, b) for c, b in zip(cols, parts, strict=True)]
-        total += p.score(terms, np.unique(p.groups[test]))
-    p.open_loop_memo[key] = total
-    return total
+    keys = [tuple(c.key for c in cols) for cols in col_lists]
+    todo = {k: cols for k, cols in zip(keys, col_lists, strict=True) if k not in p.open_loop_memo}
+    jobs, owner = [], []
+    for k, cols in todo.items():
+        ls = _solver(p, cols)[1] if cols else None
+        for train, test in p.splits:
+            terms = []
+            if ls is not None:
+                parts = _split_coef(cols, ls.fit_tasks(p.groups[train]))
+                terms = [(c.candidate, c.channel, b) for c, b in zip(cols, parts, strict=True)]
+            jobs.append((terms, np.unique(p.groups[test])))
+            owner.append(k)
+    for k in todo:
+        p.open_loop_memo[k] = 0.0
+    for k, sse in zip(owner, p.score(jobs) if jobs else [], strict=True):
+        p.open_loop_memo[k] += sse
+    return [p.open_loop_memo[k] for k in keys]
 
 
 def bootstrap_coefs(p: Problem, cols: Sequence[Column], n: int, rng: np.random.Generator,
@@ -336,11 +343,11 @@ def _assess(p: Problem, cols: Sequence[Column], cfg: ResidualConfig,
                                      / max(p.mean_square(c.channel), 1e-300)),
             fold_gains=folds, wald=wald, wald_critical=float(chi2.ppf(cfg.ci_level, len(mu)))))
     if p.score is not None and all(f.wald >= f.wald_critical for f in out):
-        ol_none, ol_full = open_loop_sse(p, []), open_loop_sse(p, cols)
+        rests = [[cols[j] for j in range(len(cols)) if j != i] for i in range(len(cols))]
+        ol_none, ol_full, *ol_rest = open_loop_sse_many(p, [[], cols, *rests])
         if ol_none > 0:
-            for i, f in enumerate(out):
-                rest = [cols[j] for j in range(len(cols)) if j != i]
-                f.open_loop_share = (open_loop_sse(p, rest) - ol_full) / ol_none
+            for f, ol in zip(out, ol_rest, strict=True):
+                f.open_loop_share = (ol - ol_full) / ol_none
     return out
 
 
