@@ -17,8 +17,9 @@ So the open-loop residual is where a slowly varying effect shows, and it is fitt
 The output-error fit is then a linear regression of r on J, which the same selection as one
 step ahead (:mod:`.trace`) takes: lasso with cross-validation by task, a Wald test with a
 bootstrap over tasks, the held-out decision after it. J is the *secant* of the rollout itself
-over a term of :data:`PROBE_N` (one rollout per basis function, run batched): the rollout the planner uses,
-cross-talk's mixing and time terms included, with no second implementation of it. A secant,
+over a term of :data:`PROBE_N` (one rollout per basis function, all run batched): the rollout
+the planner uses, cross-talk's mixing and time terms included, with no second implementation
+of it. A secant,
 not a derivative: f_theta's rollout is not smooth at small changes (ReLU kinks, the pad's
 contact thresholds), so the response to a 0.01 or 0.1 N term is not the response to a 1-2 N
 effect (a 1.5 N F_RZ offset on simulator data: one coefficient on the 0.1 N secant explains
