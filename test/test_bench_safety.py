@@ -146,8 +146,8 @@ def test_experiment_trajectory_meta_carries_the_planner_guard() -> None:
     guard = rec["planner_guard"]
     assert guard["plans"] >= 5 and len(guard["margin_max_n"]) == 2
     assert set(guard) == {"plans", "commands_reduced", "reduced_max_mmps", "fallbacks",
-                          "all_samples_unsafe", "commands_slowed", "margin_last_n", "margin_mean_n",
-                          "margin_max_n"}
+                          "all_samples_unsafe", "commands_slowed", "margin_from_horizon",
+                          "margin_last_n", "margin_mean_n", "margin_max_n"}
 
 
 def test_a_stop_names_its_model_and_how_the_other_methods_peeled_that_substrate() -> None:

@@ -339,3 +339,79 @@ def test_slowdown_lowers_the_command_after_a_measured_peak_and_says_so() -> None
              for k, fx in enumerate([4.0, 10.0, 11.0, 18.5, 12.0, 12.0, 12.0])]
     slowed = [a.note for a in notes if a is not None and a.note and "slowdown" in a.note]
     assert slowed and "measured |F| >= 17 N" in slowed[0]
+
+
+# ---------------------------------------------------------------- Eq. M7
+class LateModel(PlantModel):
+    """Exact over the first control period, F_RX under-predicted by ``late`` N from model
+    step 6 of a rollout on (the error of a model that is right now and wrong later)."""
+
+    def __init__(self, late: float) -> None:
+        super().__init__()
+        self.late = late
+
+    def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
+        out = super().rollout(history, v)
+        out[..., 1] -= self.late * (torch.arange(v.shape[1]) >= 5).to(out.dtype)
+        return out
+
+
+def _plans(planner: Planner, count: int) -> tuple[list[np.ndarray], list[float]]:
+    """``count`` plans on the test plant with the trajectory's ``u`` as the control loop
+    records it (the command in force over (t_k, t_k+1]); the margins in use and commands."""
+    planner.reset()
+    rows = [[0.0, 0.0, 0.0, 0.0, *true_forces(0.0, 0.0), np.nan]]
+    margins, commands = [], []
+    for _ in range(count):
+        u = planner.plan(Trajectory.from_array(np.asarray(rows)))
+        rows[-1][3] = u
+        margins.append(planner.last["margin"].copy())
+        commands.append(u)
+        for _ in range(5):
+            t, q = rows[-1][0] + DT, rows[-1][1] + DT * u
+            rows.append([t, q, u, u, *true_forces(q, u), np.nan])
+    return margins, commands
+
+
+def test_horizon_margin_is_the_quantile_of_the_replayed_errors() -> None:
+    """Eq. M7: a model exact over the first period but 2 N low from step 6 on gives Eq. M1 a
+    zero margin; each replay adds 5 zero errors and 20 of 2 N, so with window 50 the quantile
+    (r = ceil(51 x 0.8) = 41 of 50 sorted) is 2 N and sets the margin (counted in the meta);
+    off (the shipped default), the margin stays Eq. M1's."""
+    on = Planner(LateModel(2.0), None, config(**{"safety.margin.lead_enabled": True}))
+    margins, _ = _plans(on, 12)
+    assert on.margin.value[0] == pytest.approx(0.0, abs=1e-9)
+    assert on.lead_margin.value.tolist() == pytest.approx([2.0, 0.0], abs=1e-9)
+    assert margins[-1].tolist() == pytest.approx([2.0, 0.0], abs=1e-9)
+    # the first replay needs H k = 25 samples behind it (plan 6, at 2.5 s); min_count = 10
+    # errors are there at once
+    assert [m[0] for m in margins] == pytest.approx([0.5, 0.5, 0.0, 0.0, 0.0] + [2.0] * 7)
+    assert on.guard.as_dict()["margin_from_horizon"] == 7
+    off = Planner(LateModel(2.0), None, config())
+    margins_off, _ = _plans(off, 12)
+    assert margins_off[-1].tolist() == pytest.approx([0.0, 0.0], abs=1e-9)
+    assert off.guard.as_dict()["margin_from_horizon"] == 0
+    assert not PlannerConfig().safety.margin.lead_enabled
+    assert not load_planner_config().safety.margin.lead_enabled
+
+
+def test_horizon_margin_leaves_a_right_model_and_the_oracle_as_they_were() -> None:
+    """An exact model: the replayed errors are 0, so Eq. M7 never sets the margin and every
+    command equals the planner's without it. A model that over-predicts late in the horizon
+    has m'_a = 0 too. Dynamics that roll out from their own state (``replays_history``
+    False, the oracle's plant) are never replayed."""
+    base = config(**{"mppi.seed": 5})
+    lead = base.replace(**{"safety.margin.lead_enabled": True})
+    _, plain = _plans(Planner(PlantModel(0.0), None, base), 10)
+    with_m7 = Planner(PlantModel(0.0), None, lead)
+    _, commands = _plans(with_m7, 10)
+    assert commands == pytest.approx(plain, abs=1e-9)  # replayed errors: float rounding
+    assert with_m7.guard.as_dict()["margin_from_horizon"] == 0
+    high = Planner(LateModel(-3.0), None, lead)
+    _plans(high, 10)
+    assert high.lead_margin.value.tolist() == [0.0, 0.0]
+    oracle = LateModel(2.0)
+    oracle.replays_history = False
+    never = Planner(oracle, None, lead)
+    _plans(never, 10)
+    assert all(len(e) == 0 for e in never.lead_margin.errors)

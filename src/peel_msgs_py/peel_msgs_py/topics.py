@@ -153,8 +153,8 @@ _TABLE: tuple[TopicSpec, ...] = (
         PLANNER_SAFETY, "std_msgs/msg/String", CONTROL_RATE_HZ, STREAM_QOS,
         "peel_planner_node",
         "the guard of the force limit after each plan, JSON: task and the task's counts "
-        "(plans, commands_reduced, fallbacks, all_samples_unsafe, commands_slowed, margin_*_n per "
-        "axis); the plant bridges put the last one of each task into its trajectory's meta",
+        "(plans, commands_reduced, fallbacks, all_samples_unsafe, commands_slowed, margin_from_horizon, "
+        "margin_*_n per axis); the plant bridges put the last one of each task into its trajectory's meta",
         "N, mm/s",
     ),
     TopicSpec(

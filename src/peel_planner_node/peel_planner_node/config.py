@@ -126,6 +126,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               max=20.0),
     ParamSpec("safety.margin.max_n", float, 6.0, "ceiling m_max of the margin, N (Eq. M1)",
               min=0.0, max=20.0),
+    ParamSpec("safety.margin.lead_enabled", bool, False,
+              "also measure the model's error over a whole horizon (Eq. M7): m_a = max(Eq. M1's "
+              "margin, the conformal quantile of the horizon errors)"),
+    ParamSpec("safety.margin.lead_window", int, 50,
+              "horizon errors per axis in Eq. M7's window (one replay adds H * k of them)",
+              min=1, max=100_000),
     ParamSpec("safety.null_sample", bool, True,
               "add the slowest sequence (u_min over the horizon) to the N samples (Eq. 31)"),
     ParamSpec("safety.check.enabled", bool, True,
@@ -274,6 +280,8 @@ class MarginConfig:
     min_count: int = 10
     init_n: float = 0.5
     max_n: float = 6.0
+    lead_enabled: bool = False
+    lead_window: int = 50
 
 
 @dataclass(frozen=True)

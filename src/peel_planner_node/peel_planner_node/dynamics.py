@@ -148,6 +148,7 @@ class OracleDynamics:
             raise PeelError("env must provide rollout(v) -> ndarray[N, S, 3]")
         self.env = env
         self.dtype = dtype
+        self.replays_history = False  # it rolls out from the env's state, not a past sample
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         """Predicted (q, fx, fz) [N, S, 3] by the env for ``v`` [N, S] (mm/s)."""

@@ -39,11 +39,24 @@ by sample (the 1-5 model steps of the control period the command was in force).
 
   (nav2 collision_monitor's slowdown zone, with force for distance). It reads no model.
   Eq. M6, the same zone at every sample, is the plant bridges' (:mod:`peel_bridge.slowdown`).
+* Eq. M7, the horizon margin (``safety.margin.lead_*``): Eq. M1 measures the model over the
+  first control period only, but the barrier and the check act over the whole horizon of
+  L = H k model steps, where a model's error grows. Each plan replays the model from the sample
+  L steps back, fed the commands then in force (the trajectory's ``u``), and keeps the errors
+  e_l = |F_a measured| - |F_a replayed| of all l = 1..L in a window of its own, W'_a::
 
-:class:`ForceMargin` is Eq. M1, :func:`check_candidates` / :func:`largest_safe` Eq. M3,
-:func:`fallback_speed` Eq. M4, :func:`slowdown_speed` Eq. M5, :func:`first_period_forces` the
-prediction for the issued command (from the batch's first control period, which depends only
-on v_0), :class:`GuardStats` what the trajectory's meta and the log report. Everything here is plain torch / numpy.
+      m'_a = Eq. M1's quantile over W'_a (0 while |W'_a| < min_count)
+      m_a  = max(Eq. M1's m_a, m'_a)
+
+  So a model that under-predicts late in the horizon gets a margin that Eq. M1 does not see,
+  and one that over-predicts there (m'_a = 0) keeps Eq. M1's. A model the history cannot
+  replay (the oracle's plant, which rolls out from its own state) has no Eq. M7.
+
+:class:`ForceMargin` is Eq. M1 (and, with ``lead=True``, Eq. M7's m'_a),
+:func:`check_candidates` / :func:`largest_safe` Eq. M3, :func:`fallback_speed` Eq. M4,
+:func:`slowdown_speed` Eq. M5, :func:`first_period_forces` the prediction for the issued command
+(from the batch's first control period, which depends only on v_0), :class:`GuardStats` what the
+trajectory's meta and the log report. Everything here is plain torch / numpy.
 """
 
 from __future__ import annotations
@@ -62,10 +75,11 @@ from .config import MarginConfig
 class ForceMargin:
     """Eq. M1 (module docstring): the margin per axis from the measured force errors."""
 
-    def __init__(self, cfg: MarginConfig) -> None:
+    def __init__(self, cfg: MarginConfig, *, lead: bool = False) -> None:
         self.cfg = cfg
-        self.errors: tuple[deque[float], deque[float]] = (deque(maxlen=cfg.window),
-                                                          deque(maxlen=cfg.window))
+        self.lead = lead
+        size = cfg.lead_window if lead else cfg.window
+        self.errors: tuple[deque[float], deque[float]] = (deque(maxlen=size), deque(maxlen=size))
 
     def reset(self) -> None:
         """A new task: no errors, the margin is ``init_n`` again."""
@@ -79,13 +93,14 @@ class ForceMargin:
             self.errors[axis].extend(float(x) for x in e[:, axis] if math.isfinite(x))
 
     def axis_margin(self, axis: int) -> float:
-        """m_a of Eq. M1, N: the conformal (1 - delta) upper quantile of the window."""
+        """m_a of Eq. M1 (m'_a of Eq. M7), N: the conformal (1 - delta) upper quantile of the
+        window."""
         c, errs = self.cfg, self.errors[axis]
         n = len(errs)
         if not c.enabled:
             return 0.0
         if n < c.min_count:
-            return float(c.init_n)
+            return 0.0 if self.lead else float(c.init_n)
         r = math.ceil((n + 1) * (1.0 - c.delta))
         if r > n:
             return float(c.max_n)
@@ -178,14 +193,16 @@ class GuardStats:
     fallbacks: int = 0
     unsafe_plans: int = 0
     slowed: int = 0
+    from_horizon: int = 0
     margins: list[list[float]] = field(default_factory=list)
 
     def record(self, margin: np.ndarray, u_star: float, u_out: float, fallback: bool,
-               all_unsafe: bool, slowed: bool = False) -> None:
-        """One plan: the margin in use, the MPPI command u*, the command that went out and
-        whether Eq. M5 lowered it."""
+               all_unsafe: bool, slowed: bool = False, from_horizon: bool = False) -> None:
+        """One plan: the margin in use, the MPPI command u*, the command that went out,
+        whether Eq. M5 lowered it and whether Eq. M7 set the margin on an axis."""
         self.plans += 1
         self.slowed += int(slowed)
+        self.from_horizon += int(from_horizon)
         self.margins.append([float(margin[0]), float(margin[1])])
         self.fallbacks += int(fallback)
         self.unsafe_plans += int(all_unsafe)
@@ -199,7 +216,7 @@ class GuardStats:
         return {"plans": self.plans, "commands_reduced": self.reduced,
                 "reduced_max_mmps": round(self.reduced_max_mmps, 4),
                 "fallbacks": self.fallbacks, "all_samples_unsafe": self.unsafe_plans,
-                "commands_slowed": self.slowed,
+                "commands_slowed": self.slowed, "margin_from_horizon": self.from_horizon,
                 "margin_last_n": [round(float(x), 4) for x in m[-1]],
                 "margin_mean_n": [round(float(x), 4) for x in m.mean(axis=0)],
                 "margin_max_n": [round(float(x), 4) for x in m.max(axis=0)]}

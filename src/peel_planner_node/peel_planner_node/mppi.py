@@ -143,6 +143,7 @@ class Planner:
         self.dtype = _DTYPES[m.dtype]
         self.safety = SafetyMonitor(self.config.safety)
         self.margin = ForceMargin(self.config.safety.margin)
+        self.lead_margin = ForceMargin(self.config.safety.margin, lead=True)
         self.set_dynamics(dynamics)
         self._gen = torch.Generator(device="cpu")
         self._noise = torch.empty((self.n, self.h), dtype=self.dtype)
@@ -165,6 +166,7 @@ class Planner:
         self._u_prev: float | None = None  # the command in force (Eq. M5)
         self.safety.reset()
         self.margin.reset()
+        self.lead_margin.reset()
         self.guard = GuardStats()
         self._predicted: tuple[float, np.ndarray] | None = None  # (t, |F| [k, 2]) of u*
         self.last = {}
@@ -216,6 +218,31 @@ class Planner:
             self.margin.observe(tail[keep][:, [4, 5]], pred[step[keep]])
             self._predicted = None
 
+    def _observe_horizon(self, history: Trajectory) -> None:
+        """Eq. M7's errors: the model replayed from the sample L = H k steps back, fed the
+        commands then in force, against the L samples measured since (module :mod:`~.guard`).
+        Off for dynamics that cannot start from a past sample (``replays_history`` False)."""
+        c = self.config.safety.margin
+        steps = self.h * self.k
+        start = len(history) - 1 - steps
+        if not (c.enabled and c.lead_enabled) or start < 0 or not getattr(
+                self.dynamics, "replays_history", True):
+            return
+        with torch.inference_mode():
+            v = torch.as_tensor(history.u[start:start + steps], dtype=self.dtype).unsqueeze(0)
+            out = self.dynamics.rollout(history.slice(0, start + 1), v)
+        measured = np.stack([history.fx, history.fz], axis=1)[start + 1:]
+        self.lead_margin.observe(measured, out[0, :, 1:3].double().numpy())
+
+    def _margin(self) -> tuple[np.ndarray, bool]:
+        """m_a in use (Eq. M1, or M7's max with it) and whether Eq. M7 set it on an axis (by
+        more than 1e-6 N: a right model's replay differs from the samples by float rounding)."""
+        m1 = self.margin.value
+        if not self.config.safety.margin.lead_enabled:
+            return m1, False
+        m7 = self.lead_margin.value
+        return np.maximum(m1, m7), bool((m7 > m1 + 1e-6).any())
+
     # ------------------------------------------------------------------ MPPI (lines 4-14)
     def _rows(self, v: torch.Tensor) -> tuple[torch.Tensor, int, torch.Tensor | None]:
         """The batch: the N samples, the slowest sequence (``safety.null_sample``: weighted
@@ -251,7 +278,8 @@ class Planner:
             if out.shape != (r, self.h * self.k, 3):
                 raise PeelError(f"dynamics returned shape {tuple(out.shape)}, "
                                 f"expected {(r, self.h * self.k, 3)}")
-            margin = torch.as_tensor(self.margin.value, dtype=out.dtype)
+            m_a, from_horizon = self._margin()
+            margin = torch.as_tensor(m_a, dtype=out.dtype)
             terms = self.cost.rollout_terms(q_now, t_now, out[:n_w], margin)
             j = total(terms).to(self.dtype)
             if not bool(torch.isfinite(j).all()):
@@ -266,7 +294,7 @@ class Planner:
             g = peak_over_limit(out, active, margin, self.config.safety.f_prewarn_n)
             self.last = {"omega": omega, "cost": j, "terms": terms, "control": ctrl, "v": v,
                          "eps": eps, "ess": float(1.0 / (omega * omega).sum()),
-                         "margin": margin.numpy().copy(),
+                         "margin": margin.numpy().copy(), "from_horizon": from_horizon,
                          "all_unsafe": bool((g[:n_w] >= 0.0).all()),
                          "v0": rows[:, 0].double().numpy(),
                          "first": out[:, :self.k, 1:3].double().numpy()}
@@ -320,6 +348,7 @@ class Planner:
             return 0.0
         self._measure(history)
         self._observe_forces(history)
+        self._observe_horizon(history)
         for _ in range(self.config.mppi.iterations):
             self.update(history)
         m = self.config.mppi
@@ -327,7 +356,7 @@ class Planner:
         u_out, fallback = self._check(u_star)
         u_out, slowed = self._slowdown(history, u_out)
         self.guard.record(self.last["margin"], u_star, u_out, fallback, self.last["all_unsafe"],
-                          slowed)
+                          slowed, self.last["from_horizon"])
         self.last.update(u_star=u_star, u_out=u_out, fallback=fallback, slowed=slowed)
         self._u_prev = u_out
         t_now = float(history.t[-1])
