@@ -129,15 +129,16 @@ def summary(runs: list[dict[str, Any]], pseeds: list[int], over_n: float) -> dic
 
 def latency(arms: list[str], pred: Any, base: PlannerConfig, repeats: int,
             sim_cfg: Any) -> dict[str, Any]:
-    """``plan()`` at (50, 5) of every arm on one simulator history (task seed 1000 after 2 s at
-    2 mm/s), in rounds of interleaved calls so that machine load hits every arm alike."""
+    """``plan()`` at (50, 5) of every arm on one simulator history (task seed 1000 after 3 s at
+    2 mm/s: longer than the horizon, so that Eq. M7's replay runs when it is on), in rounds of
+    interleaved calls so that machine load hits every arm alike."""
     from peel_sim_node.env import PeelEnv
 
     cfg = base.replace(**{"mppi.n_samples": 50, "mppi.horizon": 5})
     env = PeelEnv(sim_cfg, seed=0)
     try:
         env.reset(seed=1000)
-        for _ in range(20):
+        for _ in range(30):
             env.step(2.0)
         hist = env.history
     finally:
