@@ -173,6 +173,7 @@ def run_job(method: str, seed: int, setup: Setup,
     records: list[dict[str, Any]] = []
     last: Trajectory | None = None
     model_path = None
+    previous: Any = None  # the last task's planner (Eq. M8 carries its margin window)
     env = PeelEnv(sim_cfg, source="plant", seed=task_seed(seed, 0, setup.substrate_stream),
                   params=subs[0], level=setup.plant_level, effects=load_effects(setup.effects))
     try:
@@ -182,6 +183,8 @@ def run_job(method: str, seed: int, setup: Setup,
             planner = (oracle_planner(env, cfg_k, cost) if predictor is None
                        else learned_planner(predictor, cfg_k, cost))
             planner.reset()
+            planner.carry_from(previous)
+            previous = planner
             plan_times: list[float] = []
 
             def policy(history: Trajectory, planner: Any = planner,

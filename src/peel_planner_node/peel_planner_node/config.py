@@ -126,6 +126,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               max=20.0),
     ParamSpec("safety.margin.max_n", float, 6.0, "ceiling m_max of the margin, N (Eq. M1)",
               min=0.0, max=20.0),
+    ParamSpec("safety.margin.carry_over", bool, False,
+              "a new task starts with the previous task's Eq. M1 error window (Eq. M8) instead "
+              "of an empty one and init_n"),
     ParamSpec("safety.margin.lead_enabled", bool, False,
               "also measure the model's error over a whole horizon (Eq. M7): m_a = max(Eq. M1's "
               "margin, the conformal quantile of the horizon errors)"),
@@ -282,6 +285,7 @@ class MarginConfig:
     max_n: float = 6.0
     lead_enabled: bool = False
     lead_window: int = 50
+    carry_over: bool = False
 
 
 @dataclass(frozen=True)

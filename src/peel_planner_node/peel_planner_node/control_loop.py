@@ -119,8 +119,10 @@ class ControlLoop:
     def new_task(self, s: Sample) -> str:
         """A fresh planner for task ``s.task`` with the current model and configuration."""
         cfg = self.cfg.replace(**{"mppi.seed": mppi_seed(self.seed, s.task)})
+        previous = self.planner if self.task >= 0 else None
         self.planner = Planner(self.planner.dynamics, Cost(cfg.cost), cfg)
         self.planner.reset()
+        self.planner.carry_from(previous)
         self.task, self.t0_ns = s.task, s.stamp_ns
         self.rows, self.answered, self.u_hold = [], {}, 0.0
         self.guard = {}

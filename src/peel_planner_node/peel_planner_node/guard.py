@@ -51,6 +51,11 @@ by sample (the 1-5 model steps of the control period the command was in force).
   So a model that under-predicts late in the horizon gets a margin that Eq. M1 does not see,
   and one that over-predicts there (m'_a = 0) keeps Eq. M1's. A model the history cannot
   replay (the oracle's plant, which rolls out from its own state) has no Eq. M7.
+* Eq. M8, the margin carried over (``safety.margin.carry_over``): each task starts with an
+  empty W_a and m_a = init_n until min_count errors exist (1 s), when a peel's force may already
+  climb fast. With Eq. M8 a task's W_a starts as the last task's (its last ``window`` errors),
+  so Eq. M1 applies from the first plan; the new task's errors replace them within ``window``
+  samples. The model may have been updated in between: its errors then are the old model's.
 
 :class:`ForceMargin` is Eq. M1 (and, with ``lead=True``, Eq. M7's m'_a),
 :func:`check_candidates` / :func:`largest_safe` Eq. M3, :func:`fallback_speed` Eq. M4,

@@ -171,6 +171,14 @@ class Planner:
         self._predicted: tuple[float, np.ndarray] | None = None  # (t, |F| [k, 2]) of u*
         self.last = {}
 
+    def carry_from(self, previous: Planner | None) -> None:
+        """Eq. M8 (``safety.margin.carry_over``; module :mod:`~.guard`): after :meth:`reset`,
+        start Eq. M1's window with ``previous``'s (the last task's planner) last errors."""
+        if previous is None or not self.config.safety.margin.carry_over:
+            return
+        for mine, theirs in zip(self.margin.errors, previous.margin.errors, strict=True):
+            mine.extend(theirs)
+
     def set_dynamics(self, dynamics: Dynamics) -> None:
         """Swap the forward model; U, Sigma, D_Sigma and the noise stream are kept."""
         if not isinstance(dynamics, Dynamics):
