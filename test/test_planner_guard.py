@@ -415,3 +415,39 @@ def test_horizon_margin_leaves_a_right_model_and_the_oracle_as_they_were() -> No
     never = Planner(oracle, None, lead)
     _plans(never, 10)
     assert all(len(e) == 0 for e in never.lead_margin.errors)
+
+
+# ---------------------------------------------------------------- Eq. M8
+def _loop_task(loop: ControlLoop, task: int, t0_ns: int, samples: int) -> None:
+    """``samples`` samples of task ``task`` on the test plant, the blade following each
+    command (the measured forces are the plant's, the model's are 2 N low on F_RX)."""
+    q, u = 0.0, 0.0
+    for k in range(samples):
+        if k:
+            q += DT * u
+        fx, fz = true_forces(q, u)
+        answer = loop.on_sample(Sample(t0_ns + k * 100_000_000, task, q, u, fx, fz))
+        if answer is not None:
+            u = answer.u_mmps
+
+
+@pytest.mark.parametrize("carry", [False, True])
+def test_margin_window_is_carried_into_the_next_task_only_when_asked(carry: bool) -> None:
+    """Eq. M8: a model 2 N low on F_RX. Each task's first plan uses init_n (0.5 N) without
+    Eq. M8; with it, the last task's window, so the next task's first plan already has the
+    measured 2 N, in the control loop (a new planner per task) as in ``carry_from``."""
+    cfg = config(**{"safety.margin.carry_over": carry})
+    loop = ControlLoop(cfg, PlantModel(2.0), seed=0)
+    _loop_task(loop, 0, 0, 31)
+    assert loop.margins_n[0] == pytest.approx(2.0)
+    _loop_task(loop, 1, 10_000_000_000, 1)  # the new task's first sample: its first plan
+    assert loop.margins_n[0] == pytest.approx(2.0 if carry else 0.5)
+    first = Planner(PlantModel(2.0), None, cfg)
+    peel(first, t_max=3.0)
+    second = Planner(PlantModel(2.0), None, cfg)
+    second.reset()
+    second.carry_from(first)
+    second.carry_from(None)  # nothing to carry: unchanged
+    assert second.margin.value[0] == pytest.approx(2.0 if carry else 0.5)
+    assert not PlannerConfig().safety.margin.carry_over
+    assert not load_planner_config().safety.margin.carry_over
