@@ -22,7 +22,7 @@ from peel_planner_node.config import (
     PlannerConfig,
     load_planner_config,
 )
-from peel_planner_node.control_loop import ControlLoop
+from peel_planner_node.control_loop import ControlLoop, guard_line
 from peel_planner_node.cost import BarrierCritic, Cost
 from peel_planner_node.guard import (
     ForceMargin,
@@ -387,10 +387,12 @@ def test_horizon_margin_is_the_quantile_of_the_replayed_errors() -> None:
     # errors are there at once
     assert [m[0] for m in margins] == pytest.approx([0.5, 0.5, 0.0, 0.0, 0.0] + [2.0] * 7)
     assert on.guard.as_dict()["margin_from_horizon"] == 7
+    assert guard_line(on.guard.as_dict()).endswith("N, set by the horizon error in 7 plans")
     off = Planner(LateModel(2.0), None, config())
     margins_off, _ = _plans(off, 12)
     assert margins_off[-1].tolist() == pytest.approx([0.0, 0.0], abs=1e-9)
     assert off.guard.as_dict()["margin_from_horizon"] == 0
+    assert "horizon" not in guard_line(off.guard.as_dict())
     assert not PlannerConfig().safety.margin.lead_enabled
     assert not load_planner_config().safety.margin.lead_enabled
 

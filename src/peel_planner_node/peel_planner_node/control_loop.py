@@ -177,8 +177,9 @@ def guard_line(g: dict[str, Any]) -> str:
     """One log line of a task's guard summary (:meth:`GuardStats.as_dict`)."""
     if not g:
         return "guard: no plan"
+    horizon = (f", set by the horizon error in {g['margin_from_horizon']} plans"
+               if g.get("margin_from_horizon") else "")
     return (f"guard: {g['commands_reduced']} of {g['plans']} commands reduced (at most "
             f"{g['reduced_max_mmps']:.2f} mm/s), {g['fallbacks']} fallbacks, "
             f"{g['commands_slowed']} slowed by the measured force, margin max "
-            f"({g['margin_max_n'][0]:.2f}, {g['margin_max_n'][1]:.2f}) N, set by the horizon "
-            f"error in {g['margin_from_horizon']} plans")
+            f"({g['margin_max_n'][0]:.2f}, {g['margin_max_n'][1]:.2f}) N{horizon}")

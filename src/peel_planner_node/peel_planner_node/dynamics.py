@@ -41,7 +41,11 @@ _LOG = logging.getLogger(__name__)
 
 @runtime_checkable
 class Dynamics(Protocol):
-    """Batched forward simulation used by the planner (Algorithm 2, line 9)."""
+    """Batched forward simulation used by the planner (Algorithm 2, line 9).
+
+    ``rollout`` starts from the end of the history it is given, so the guard's Eq. M7 can
+    replay a past sample by passing a shorter history; an implementation that rolls out from
+    a state of its own instead sets ``replays_history = False`` (:class:`OracleDynamics`)."""
 
     def rollout(self, history: Trajectory, v: torch.Tensor) -> torch.Tensor:
         """Predicted (q_mm, fx_N, fz_N) [N, S, 3] for velocities ``v`` [N, S] (mm/s)."""
